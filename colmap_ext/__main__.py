@@ -1,0 +1,3 @@
+from colmap_ext.cli import main
+
+raise SystemExit(main())

@@ -1,0 +1,51 @@
+"""The `colmap-ext` command: one subcommand per pipeline step, COLMAP's flag names.
+
+Each subcommand lives in its own module, which exposes `add_arguments(parser)` and a
+`main(**kwargs)` whose keyword arguments are the parser's destinations, so the same
+step is one call from Python and one command from the shell.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+
+from colmap_ext import __version__
+from colmap_ext.errors import UserError
+
+# subcommand -> (module, one-line help)
+COMMANDS: dict[str, tuple[str, str]] = {}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="colmap-ext",
+        description="Camera poses for calibrated cameras, as a drop-in for `colmap mapper`.",
+    )
+    parser.add_argument("--version", action="version", version=f"colmap-ext {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, (module_name, help_text) in COMMANDS.items():
+        module = importlib.import_module(module_name)
+        sub = subparsers.add_parser(name, help=help_text, description=help_text)
+        module.add_arguments(sub)
+        sub.set_defaults(_module=module)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if args.command is None:
+        parser.print_help()
+        return 0
+    kwargs = {k: v for k, v in vars(args).items() if k not in ("command", "_module")}
+    try:
+        args._module.main(**kwargs)
+    except UserError as exc:
+        print(f"colmap-ext: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("colmap-ext: interrupted; nothing was written over.", file=sys.stderr)
+        return 130
+    return 0

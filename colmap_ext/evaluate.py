@@ -1,0 +1,209 @@
+"""`colmap-ext evaluate`: a model's camera poses against a ground truth, by the paper's measures.
+
+Poses on both sides are taken relative to the first registered image (cam_i from cam_1, in
+ground-truth order), which removes the gauge without fitting anything:
+- R_err: angle of R_i^T R^_i, in degrees;
+- T_err: angle between t_i and t^_i, in degrees (translation is known only up to scale;
+  0 where t_i = 0, i.e. for the reference and any view taken from the same place);
+- C_err: |s C^_i - C_i| / |C_2 - C_1|, centres in the first camera's frame, s matching their spread.
+C_err_aligned replaces the first camera's frame and spread by the best similarity
+(Umeyama) from the estimated onto the ground-truth centres, in the same unit.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+from pathlib import Path, PurePosixPath
+
+import numpy as np
+import pycolmap
+
+from colmap_ext.errors import UserError
+from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth, read_model
+from colmap_ext.plots import plot_errors
+
+logger = logging.getLogger(__name__)
+
+# Ground-truth centres closer than this (in |C2 - C1|) to the reference's have no T_err.
+_SAME_CENTRE = 1e-6
+
+# Per-image measures (report keys) and their units in the printed table.
+MEASURES = {"R_err_deg": "deg", "T_err_deg": "deg", "C_err": "|C2-C1|", "C_err_aligned": "|C2-C1|"}
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Define the options of `colmap-ext evaluate`."""
+    parser.add_argument("--model_path", type=Path, required=True,
+                        help="COLMAP model folder to evaluate (e.g. OUTPUT/0)")
+    parser.add_argument("--ground_truth", type=Path, required=True,
+                        help="Middlebury *_par.txt, a folder of Strecha *.camera files, or a COLMAP model")
+    parser.add_argument("--output", type=Path, help="write the report as JSON to this file")
+    parser.add_argument("--plot", type=Path, help="draw the per-image errors to this image (.png, .pdf, .svg)")
+    parser.add_argument("--format", choices=FORMATS, help="ground-truth format (default: detected)")
+
+
+def main(model_path: str | os.PathLike, ground_truth: str | os.PathLike,
+         output: str | os.PathLike | None = None, plot: str | os.PathLike | None = None,
+         format: str | None = None) -> dict:
+    """Evaluate the model at `model_path`, print a table, optionally write JSON and a plot."""
+    reconstruction = read_model(Path(model_path))
+    report = evaluate(reconstruction, read_ground_truth(ground_truth, format))
+    print(format_table(report))
+    if output is not None:
+        write_json(report, Path(output))
+    if plot is not None:
+        plot_errors({str(model_path): report}, plot)
+    return report
+
+
+def evaluate(reconstruction: pycolmap.Reconstruction, ground_truth: GroundTruth) -> dict:
+    """The report: per-image errors in ground-truth order (None if unregistered) and their max/median."""
+    names = list(ground_truth.poses)
+    matches = match_images(reconstruction, names)
+    registered = [name for name in names if name in matches]
+    if len(registered) < 2:
+        raise UserError(f"only {len(registered)} registered image(s) match the {len(names)} "
+                        "ground-truth images by name; at least 2 are needed")
+    errors = pose_errors(
+        [ground_truth.poses[name] for name in registered],
+        [matches[name].cam_from_world() for name in registered],
+    )
+    per_image = {name: {key: None for key in MEASURES} for name in names}
+    for index, name in enumerate(registered):
+        per_image[name] = {key: float(values[index]) for key, values in errors.items()}
+    report = {"num_gt_images": len(names), "num_registered": len(registered)}
+    for key, values in errors.items():
+        report[summary_key(key, "max")] = float(np.max(values))
+        report[summary_key(key, "median")] = float(np.median(values))
+    report["per_image"] = [{"name": name, **per_image[name]} for name in names]
+    return report
+
+
+def summary_key(measure: str, statistic: str) -> str:
+    """The report key of a statistic of a measure: ('R_err_deg', 'max') -> 'R_err_max_deg'."""
+    stem, deg, _ = measure.partition("_deg")
+    return f"{stem}_{statistic}{deg}"
+
+
+def match_images(reconstruction: pycolmap.Reconstruction, names: list[str]) -> dict[str, pycolmap.Image]:
+    """Ground-truth name -> registered model image, by exact name, else by a basename unique on both sides.
+
+    The basename fallback lets `sub/a.png` in a model meet `a.png` in a ground truth.
+    Model images without ground truth are ignored, with a warning saying how many.
+    """
+    images = [image for image in reconstruction.images.values() if image.has_pose]
+    by_name = {image.name: image for image in images}
+    matches = {name: by_name[name] for name in names if name in by_name}
+
+    def unique_by_basename(items: list[str]) -> dict[str, str]:
+        bases: dict[str, list[str]] = {}
+        for item in items:
+            bases.setdefault(PurePosixPath(item).name, []).append(item)
+        return {base: found[0] for base, found in bases.items() if len(found) == 1}
+
+    gt_left = unique_by_basename([name for name in names if name not in matches])
+    used = {image.name for image in matches.values()}
+    model_left = unique_by_basename([image.name for image in images if image.name not in used])
+    for base, name in gt_left.items():
+        if base in model_left:
+            matches[name] = by_name[model_left[base]]
+    unmatched = len(images) - len(matches)
+    if unmatched:
+        logger.warning("%d registered model image(s) have no ground truth and are ignored", unmatched)
+    return matches
+
+
+def pose_errors(gt_poses: list[pycolmap.Rigid3d], est_poses: list[pycolmap.Rigid3d]) -> dict[str, np.ndarray]:
+    """Per-image R_err, T_err (deg), C_err and C_err_aligned of matched cam_from_world poses."""
+    R_gt, t_gt = _relative_to_first(gt_poses)
+    R_est, t_est = _relative_to_first(est_poses)
+    C_gt, C_est = _centres(R_gt, t_gt), _centres(R_est, t_est)
+    unit = np.linalg.norm(C_gt[1] - C_gt[0])
+    t_err = vector_angles_deg(t_gt, t_est)
+    # No direction to compare where the ground-truth camera sits on the reference's centre:
+    # the reference itself, and e.g. the last view of a closed ring (templeSR0011).
+    t_err[np.linalg.norm(t_gt, axis=1) <= _SAME_CENTRE * unit] = 0.0
+    spread_est = _spread(C_est)
+    if unit == 0:
+        raise UserError("the first two ground-truth camera centres coincide: C_err has no unit")
+    if spread_est == 0:
+        raise UserError("all estimated camera centres coincide: C_err is undefined")
+    scale = np.sqrt(_spread(C_gt) / spread_est)
+    return {
+        "R_err_deg": rotation_angles_deg(np.swapaxes(R_gt, 1, 2) @ R_est),
+        "T_err_deg": t_err,
+        "C_err": np.linalg.norm(scale * C_est - C_gt, axis=1) / unit,
+        "C_err_aligned": np.linalg.norm(align_similarity(C_est, C_gt) - C_gt, axis=1) / unit,
+    }
+
+
+def rotation_angles_deg(R: np.ndarray) -> np.ndarray:
+    """Angles of rotations (n,3,3) in degrees, as atan2(sin, cos): exact near 0 where arccos is not."""
+    cos = (np.trace(R, axis1=1, axis2=2) - 1) / 2
+    skew = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    sin = np.linalg.norm(skew, axis=1) / 2
+    return np.degrees(np.arctan2(sin, cos))
+
+
+def vector_angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles between rows of a and b (n,3) in degrees, as atan2(|a x b|, a.b)."""
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
+
+
+def align_similarity(source: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """`source` points (n,3) moved by the least-squares similarity onto `target` (Umeyama 1991)."""
+    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
+    xs, xt = source - mu_s, target - mu_t
+    u, d, vt = np.linalg.svd(xt.T @ xs)
+    signs = np.array([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
+    rotation = u @ np.diag(signs) @ vt
+    scale = np.sum(d * signs) / np.sum(xs**2)
+    return scale * xs @ rotation.T + mu_t
+
+
+def _relative_to_first(poses: list[pycolmap.Rigid3d]) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations (n,3,3) and translations (n,3) of cam_i_from_cam_1 = cam_i_from_world * world_from_cam_1."""
+    R = np.array([pose.rotation.matrix() for pose in poses])
+    t = np.array([pose.translation for pose in poses])
+    R_rel = R @ R[0].T
+    return R_rel, t - R_rel @ t[0]
+
+
+def _centres(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Camera centres C = -R^T t (n,3)."""
+    return -np.einsum("nji,nj->ni", R, t)
+
+
+def _spread(points: np.ndarray) -> float:
+    """Sum of squared distances of points (n,3) to their mean."""
+    return float(np.sum((points - points.mean(axis=0)) ** 2))
+
+
+def format_table(report: dict) -> str:
+    """The report as a per-image table followed by summary lines."""
+    width = max(len("image"), *(len(entry["name"]) for entry in report["per_image"]))
+    headings = [key.removesuffix("_deg") for key in MEASURES]
+    lines = [f"{'image':<{width}}" + "".join(f"{heading:>15}" for heading in headings)]
+    for entry in report["per_image"]:
+        cells = ["unregistered" if entry[key] is None else f"{entry[key]:.4f}" for key in MEASURES]
+        lines.append(f"{entry['name']:<{width}}" + "".join(f"{cell:>15}" for cell in cells))
+    lines += ["", f"registered: {report['num_registered']} / {report['num_gt_images']}"]
+    for key, unit in MEASURES.items():
+        maximum, median = report[summary_key(key, "max")], report[summary_key(key, "median")]
+        lines.append(f"{key.removesuffix('_deg') + ':':<15}max {maximum:.4f}  median {median:.4f}  ({unit})")
+    return "\n".join(lines)
+
+
+def write_json(report: dict, path: Path) -> None:
+    """Write the report as JSON through a temporary file, so no reader sees half of it."""
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        temporary.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+        os.replace(temporary, path)
+    except OSError as exc:
+        temporary.unlink(missing_ok=True)
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None

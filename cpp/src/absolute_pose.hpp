@@ -1,0 +1,23 @@
+// Calibrated absolute pose: P3P minimal solvers (OpenGV) inside LO-MSAC.
+#pragma once
+
+#include <vector>
+
+#include "geometry.hpp"
+#include "ransac.hpp"
+
+namespace colmap_ext {
+
+enum class P3PMethod { kKneip, kGao };
+
+// All cam_from_world poses consistent with exactly three ray/point pairs.
+std::vector<Pose> p3p(const opengv::bearingVectors_t& rays, const opengv::points_t& points,
+                      P3PMethod method);
+
+// Robust cam_from_world from unit rays and world points; max_error is the
+// reprojection error in normalized image units.
+RansacResult<Pose> estimate_absolute_pose(const opengv::bearingVectors_t& rays,
+                                          const opengv::points_t& points, P3PMethod method,
+                                          const RansacOptions& options);
+
+}  // namespace colmap_ext

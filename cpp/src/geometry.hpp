@@ -1,0 +1,46 @@
+// Conventions, written down once.
+//
+// Poses follow COLMAP: a Pose {R, t} maps x_to = R x_from + t (cam_from_world,
+// cam2_from_cam1). The essential matrix is COLMAP's: x2^T E x1 = 0 for normalized
+// homogeneous points, E = [t]_x R with (R, t) = cam2_from_cam1.
+//
+// OpenGV differs: its relative pose [R12|t12] maps camera 2 into camera 1
+// (X1 = R12 X2 + t12), its absolute pose [R|t] is world_from_camera, and its
+// essential matrices satisfy f1^T E f2 = 0, i.e. E_colmap = E_opengv^T.
+// The functions below are the only places that translate between the two.
+#pragma once
+
+#include <Eigen/Core>
+#include <opengv/types.hpp>
+
+namespace colmap_ext {
+
+struct Pose {
+  Eigen::Matrix3d R = Eigen::Matrix3d::Identity();
+  Eigen::Vector3d t = Eigen::Vector3d::Zero();
+};
+
+// COLMAP cam2_from_cam1 <-> OpenGV [R12|t12] (cam1_from_cam2); the same inversion
+// maps COLMAP cam_from_world <-> OpenGV world_from_camera.
+inline Pose inverse(const Pose& pose) {
+  return {pose.R.transpose(), -pose.R.transpose() * pose.t};
+}
+
+inline Pose from_opengv(const opengv::transformation_t& T) {
+  return inverse(Pose{T.leftCols<3>(), T.col(3)});
+}
+
+inline Eigen::Matrix3d skew(const Eigen::Vector3d& v) {
+  Eigen::Matrix3d S;
+  S << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
+  return S;
+}
+
+inline Eigen::Matrix3d essential_from_pose(const Pose& cam2_from_cam1) {
+  return skew(cam2_from_cam1.t) * cam2_from_cam1.R;
+}
+
+// Rays with z <= kMinRayZ have no normalized image coordinates; they never count as inliers.
+constexpr double kMinRayZ = 1e-9;
+
+}  // namespace colmap_ext

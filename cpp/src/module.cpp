@@ -1,0 +1,160 @@
+// pybind11 face of the solvers. Inputs arrive checked and normalised by the Python
+// package `solvers` (unit rays, float64, C-contiguous); the RANSAC loops run with
+// the GIL released.
+#include <pybind11/eigen.h>
+#include <pybind11/numpy.h>
+#include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
+
+#include <stdexcept>
+#include <string>
+
+#include "absolute_pose.hpp"
+#include "relative_pose.hpp"
+#include "triangulation.hpp"
+
+namespace py = pybind11;
+using namespace colmap_ext;
+
+namespace {
+
+using RowsX3 = Eigen::Matrix<double, Eigen::Dynamic, 3, Eigen::RowMajor>;
+using RowsX12 = Eigen::Matrix<double, Eigen::Dynamic, 12, Eigen::RowMajor>;
+
+opengv::bearingVectors_t to_vectors(const Eigen::Ref<const RowsX3>& rows) {
+  opengv::bearingVectors_t out(rows.rows());
+  for (Eigen::Index i = 0; i < rows.rows(); ++i) out[i] = rows.row(i).transpose();
+  return out;
+}
+
+FivePointMethod five_point_method(const std::string& name) {
+  if (name == "nister") return FivePointMethod::kNister;
+  if (name == "stewenius") return FivePointMethod::kStewenius;
+  throw std::invalid_argument("unknown 5-point method '" + name + "' (nister, stewenius)");
+}
+
+P3PMethod p3p_method(const std::string& name) {
+  if (name == "kneip") return P3PMethod::kKneip;
+  if (name == "gao") return P3PMethod::kGao;
+  throw std::invalid_argument("unknown P3P method '" + name + "' (kneip, gao)");
+}
+
+RansacOptions ransac_options(double max_error, int max_iterations, int min_iterations,
+                             double confidence, uint64_t seed) {
+  RansacOptions options;
+  options.max_error = max_error;
+  options.max_iterations = max_iterations;
+  options.min_iterations = min_iterations;
+  options.confidence = confidence;
+  options.seed = seed;
+  return options;
+}
+
+py::dict ransac_dict(const RansacResult<Pose>& r) {
+  py::array_t<bool> mask(static_cast<py::ssize_t>(r.inlier_mask.size()));
+  auto m = mask.mutable_unchecked<1>();
+  for (size_t i = 0; i < r.inlier_mask.size(); ++i) m(i) = r.inlier_mask[i] != 0;
+  py::dict d;
+  d["success"] = r.success;
+  d["R"] = r.model.R;
+  d["t"] = r.model.t;
+  d["inlier_mask"] = mask;
+  d["num_inliers"] = r.num_inliers;
+  d["num_iterations"] = r.num_iterations;
+  return d;
+}
+
+py::dict relative_pose(const Eigen::Ref<const RowsX3>& rays1, const Eigen::Ref<const RowsX3>& rays2,
+                       const std::string& method, double max_error, int max_iterations,
+                       int min_iterations, double confidence, uint64_t seed) {
+  const FivePointMethod m = five_point_method(method);
+  const opengv::bearingVectors_t f1 = to_vectors(rays1), f2 = to_vectors(rays2);
+  RelativePoseResult result;
+  {
+    py::gil_scoped_release release;
+    result = estimate_relative_pose(
+        f1, f2, m, ransac_options(max_error, max_iterations, min_iterations, confidence, seed));
+  }
+  py::dict d = ransac_dict(result.ransac);
+  d["E"] = result.E;
+  return d;
+}
+
+py::dict absolute_pose(const Eigen::Ref<const RowsX3>& rays, const Eigen::Ref<const RowsX3>& points,
+                       const std::string& method, double max_error, int max_iterations,
+                       int min_iterations, double confidence, uint64_t seed) {
+  const P3PMethod m = p3p_method(method);
+  const opengv::bearingVectors_t f = to_vectors(rays);
+  const opengv::points_t X = to_vectors(points);
+  RansacResult<Pose> result;
+  {
+    py::gil_scoped_release release;
+    result = estimate_absolute_pose(
+        f, X, m, ransac_options(max_error, max_iterations, min_iterations, confidence, seed));
+  }
+  return ransac_dict(result);
+}
+
+std::vector<Eigen::Matrix3d> five_point_py(const Eigen::Ref<const RowsX3>& rays1,
+                                           const Eigen::Ref<const RowsX3>& rays2,
+                                           const std::string& method) {
+  return five_point(to_vectors(rays1), to_vectors(rays2), five_point_method(method));
+}
+
+std::vector<Eigen::Matrix<double, 3, 4>> p3p_py(const Eigen::Ref<const RowsX3>& rays,
+                                                const Eigen::Ref<const RowsX3>& points,
+                                                const std::string& method) {
+  std::vector<Eigen::Matrix<double, 3, 4>> out;
+  for (const Pose& pose : p3p(to_vectors(rays), to_vectors(points), p3p_method(method))) {
+    Eigen::Matrix<double, 3, 4> T;
+    T << pose.R, pose.t;
+    out.push_back(T);
+  }
+  return out;
+}
+
+py::tuple triangulate_tracks_py(const Eigen::Ref<const RowsX12>& cams_from_world,
+                                const Eigen::Ref<const Eigen::VectorXi>& view_index,
+                                const Eigen::Ref<const Eigen::VectorXi>& point_index,
+                                const Eigen::Ref<const RowsX3>& rays, int num_points,
+                                double min_angle_deg) {
+  std::vector<Pose> poses(cams_from_world.rows());
+  for (Eigen::Index v = 0; v < cams_from_world.rows(); ++v) {
+    Eigen::Map<const Eigen::Matrix<double, 3, 4, Eigen::RowMajor>> T(cams_from_world.row(v).data());
+    poses[v] = {T.leftCols<3>(), T.col(3)};
+  }
+  std::vector<Observation> observations(rays.rows());
+  for (Eigen::Index k = 0; k < rays.rows(); ++k)
+    observations[k] = {view_index[k], point_index[k], rays.row(k).transpose()};
+  TriangulationResult result;
+  {
+    py::gil_scoped_release release;
+    result = triangulate_tracks(poses, observations, num_points, min_angle_deg * M_PI / 180.0);
+  }
+  py::array_t<double> points({static_cast<py::ssize_t>(num_points), py::ssize_t{3}});
+  py::array_t<bool> valid(num_points);
+  auto p = points.mutable_unchecked<2>();
+  auto v = valid.mutable_unchecked<1>();
+  for (int i = 0; i < num_points; ++i) {
+    for (int j = 0; j < 3; ++j) p(i, j) = result.points[i][j];
+    v(i) = result.valid[i] != 0;
+  }
+  return py::make_tuple(points, valid);
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_opengv, m) {
+  m.doc() = "OpenGV minimal solvers and RANSAC in COLMAP's conventions (see geometry.hpp).";
+  m.def("relative_pose", &relative_pose, py::arg("rays1"), py::arg("rays2"), py::arg("method"),
+        py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
+        py::arg("confidence"), py::arg("seed"));
+  m.def("absolute_pose", &absolute_pose, py::arg("rays"), py::arg("points3D"), py::arg("method"),
+        py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
+        py::arg("confidence"), py::arg("seed"));
+  m.def("five_point", &five_point_py, py::arg("rays1"), py::arg("rays2"), py::arg("method"));
+  m.def("p3p", &p3p_py, py::arg("rays"), py::arg("points3D"), py::arg("method"));
+  m.def("triangulate_tracks", &triangulate_tracks_py, py::arg("cams_from_world"),
+        py::arg("view_index"), py::arg("point_index"), py::arg("rays"), py::arg("num_points"),
+        py::arg("min_angle_deg"));
+}

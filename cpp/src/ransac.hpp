@@ -1,0 +1,142 @@
+// One generic LO-MSAC loop over an estimator (in the spirit of PoseLib's ransac.h).
+//
+// An Estimator provides:
+//   using Model = ...;
+//   static constexpr int kSampleSize;
+//   size_t num_data() const;
+//   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const;
+//   double squared_error(const Model& model, size_t i) const;   // +inf for impossible
+//   bool refine(const std::vector<int>& inliers, Model* model) const;  // least squares on inliers
+#pragma once
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <numeric>
+#include <random>
+#include <vector>
+
+namespace colmap_ext {
+
+struct RansacOptions {
+  double max_error = 1e-3;  // inlier threshold on the estimator's error (not squared)
+  int max_iterations = 10000;
+  int min_iterations = 10;
+  double confidence = 0.9999;
+  uint64_t seed = 0;
+};
+
+template <typename Model>
+struct RansacResult {
+  bool success = false;
+  Model model{};
+  std::vector<char> inlier_mask;
+  int num_inliers = 0;
+  int num_iterations = 0;
+};
+
+// Number of iterations after which an all-inlier sample has been drawn with `confidence`.
+inline int required_iterations(int num_inliers, int num_data, int sample_size, double confidence) {
+  const double inlier_ratio = static_cast<double>(num_inliers) / num_data;
+  const double p_good_sample = std::pow(inlier_ratio, sample_size);
+  if (p_good_sample >= 1.0 - 1e-12) return 0;
+  if (p_good_sample <= std::numeric_limits<double>::min()) return std::numeric_limits<int>::max();
+  const double n = std::log(1.0 - confidence) / std::log1p(-p_good_sample);
+  return n > std::numeric_limits<int>::max() ? std::numeric_limits<int>::max()
+                                               : static_cast<int>(std::ceil(n));
+}
+
+// MSAC score (lower is better) and the inliers of one model. Scoring stops early once
+// the score passes `bound`: such a model cannot become the best one.
+template <typename Estimator>
+double score_model(const Estimator& estimator, const typename Estimator::Model& model,
+                   double max_sq_error, std::vector<int>* inliers,
+                   double bound = std::numeric_limits<double>::infinity()) {
+  inliers->clear();
+  double score = 0.0;
+  const size_t n = estimator.num_data();
+  for (size_t i = 0; i < n; ++i) {
+    const double e = estimator.squared_error(model, i);
+    if (e < max_sq_error) {
+      score += e;
+      inliers->push_back(static_cast<int>(i));
+    } else {
+      score += max_sq_error;
+      if (score > bound) return score;
+    }
+  }
+  return score;
+}
+
+template <typename Estimator>
+RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
+                                               const RansacOptions& options) {
+  using Model = typename Estimator::Model;
+  constexpr int kSampleSize = Estimator::kSampleSize;
+  RansacResult<Model> result;
+  const int num_data = static_cast<int>(estimator.num_data());
+  if (num_data < kSampleSize) return result;
+
+  const double max_sq_error = options.max_error * options.max_error;
+  std::mt19937_64 rng(options.seed);
+  std::vector<int> indices(num_data);
+  std::iota(indices.begin(), indices.end(), 0);
+  std::vector<int> sample(kSampleSize), inliers, best_inliers;
+  std::vector<Model> models;
+  double best_score = std::numeric_limits<double>::infinity();
+  int max_iterations = options.max_iterations;
+
+  int iteration = 0;
+  for (; iteration < max_iterations; ++iteration) {
+    // Partial Fisher-Yates: kSampleSize distinct indices.
+    for (int k = 0; k < kSampleSize; ++k) {
+      std::uniform_int_distribution<int> pick(k, num_data - 1);
+      std::swap(indices[k], indices[pick(rng)]);
+      sample[k] = indices[k];
+    }
+    models.clear();
+    estimator.minimal_solve(sample, &models);
+    for (const Model& model : models) {
+      const double score = score_model(estimator, model, max_sq_error, &inliers, best_score);
+      if (score >= best_score) continue;
+      best_score = score;
+      result.model = model;
+      best_inliers.swap(inliers);
+      // Local optimisation: a least-squares fit on the inliers often finds more of them.
+      Model refined = result.model;
+      if (static_cast<int>(best_inliers.size()) > kSampleSize &&
+          estimator.refine(best_inliers, &refined)) {
+        const double refined_score = score_model(estimator, refined, max_sq_error, &inliers);
+        if (refined_score < best_score) {
+          best_score = refined_score;
+          result.model = refined;
+          best_inliers.swap(inliers);
+        }
+      }
+      const int needed = required_iterations(static_cast<int>(best_inliers.size()), num_data,
+                                             kSampleSize, options.confidence);
+      max_iterations = std::min(options.max_iterations, std::max(options.min_iterations, needed));
+    }
+  }
+  result.num_iterations = iteration;
+  if (static_cast<int>(best_inliers.size()) < kSampleSize) return result;
+
+  // Final refinement on all inliers, kept only where it does not lose support.
+  for (int round = 0; round < 2; ++round) {
+    Model refined = result.model;
+    if (!estimator.refine(best_inliers, &refined)) break;
+    const double refined_score = score_model(estimator, refined, max_sq_error, &inliers);
+    if (refined_score > best_score) break;
+    best_score = refined_score;
+    result.model = refined;
+    best_inliers.swap(inliers);
+  }
+  result.success = true;
+  result.num_inliers = static_cast<int>(best_inliers.size());
+  result.inlier_mask.assign(num_data, 0);
+  for (int i : best_inliers) result.inlier_mask[i] = 1;
+  return result;
+}
+
+}  // namespace colmap_ext

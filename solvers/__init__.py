@@ -1,0 +1,33 @@
+"""Calibrated minimal solvers and RANSAC (OpenGV, in C++) in COLMAP's conventions.
+
+Conventions, once:
+- Inputs are undistorted bearing vectors: (N, 3) rays or (N, 2) normalized image
+  coordinates (x/z, y/z). `pycolmap.Camera.cam_from_img` gives the latter.
+- Thresholds (`max_error`) are in normalized image units: pixels / focal length.
+- Poses are `pycolmap.Rigid3d`: x_to = R x_from + t (cam2_from_cam1, cam_from_world).
+- E is COLMAP's: x2^T E x1 = 0 for homogeneous normalized points.
+"""
+
+from solvers.api import (
+    AbsolutePoseResult,
+    EstimationError,
+    RelativePoseResult,
+    absolute_pose,
+    five_point,
+    p3p,
+    relative_pose,
+    triangulate,
+    triangulate_tracks,
+)
+
+__all__ = [
+    "AbsolutePoseResult",
+    "EstimationError",
+    "RelativePoseResult",
+    "absolute_pose",
+    "five_point",
+    "p3p",
+    "relative_pose",
+    "triangulate",
+    "triangulate_tracks",
+]

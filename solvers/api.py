@@ -1,0 +1,160 @@
+"""Checked, typed wrappers over the compiled module `solvers._opengv`."""
+
+from __future__ import annotations
+
+import secrets
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from solvers import _opengv
+from solvers.checks import as_points3D, as_rays, check_positive, check_same_length, check_choice
+
+RELATIVE_METHODS = ("nister", "stewenius")
+ABSOLUTE_METHODS = ("kneip", "gao")
+
+
+class EstimationError(RuntimeError):
+    """RANSAC found no model that enough correspondences agree with (degenerate data)."""
+
+
+@dataclass(frozen=True)
+class RelativePoseResult:
+    cam2_from_cam1: pycolmap.Rigid3d  # unit translation
+    E: np.ndarray  # (3, 3), x2^T E x1 = 0
+    inlier_mask: np.ndarray  # (N,) bool
+    num_inliers: int
+    num_iterations: int
+
+
+@dataclass(frozen=True)
+class AbsolutePoseResult:
+    cam_from_world: pycolmap.Rigid3d
+    inlier_mask: np.ndarray  # (N,) bool
+    num_inliers: int
+    num_iterations: int
+
+
+def rigid3d(R: np.ndarray, t: np.ndarray) -> pycolmap.Rigid3d:
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R)), np.asarray(t, dtype=np.float64))
+
+
+def _ransac_kwargs(max_error: float, max_iterations: int, min_iterations: int,
+                   confidence: float, seed: int | None) -> dict:
+    check_positive("max_error", max_error)
+    if int(max_iterations) < 1 or int(min_iterations) < 0 or min_iterations > max_iterations:
+        raise ValueError("need 0 <= min_iterations <= max_iterations and max_iterations >= 1")
+    if not 0.0 < confidence < 1.0:
+        raise ValueError(f"confidence must be in (0, 1), got {confidence}")
+    if seed is None:
+        seed = secrets.randbits(64)
+    elif not 0 <= int(seed) < 2**64:
+        raise ValueError(f"seed must be a non-negative 64-bit integer, got {seed}")
+    return dict(max_error=float(max_error), max_iterations=int(max_iterations),
+                min_iterations=int(min_iterations), confidence=float(confidence), seed=int(seed))
+
+
+def relative_pose(rays1, rays2, *, max_error: float, method: str = "nister",
+                  max_iterations: int = 10000, min_iterations: int = 10,
+                  confidence: float = 0.9999, min_num_inliers: int = 15,
+                  seed: int | None = None) -> RelativePoseResult:
+    """cam2_from_cam1 and E by 5-point LO-MSAC; Sampson error threshold `max_error`.
+
+    The pose is refined on the inliers, and the cheirality check picks the one of E's
+    four decompositions that puts the inliers in front of both cameras. Raises
+    EstimationError when fewer than `min_num_inliers` correspondences agree.
+    """
+    check_choice("method", method, RELATIVE_METHODS)
+    f1, f2 = as_rays(rays1, "rays1"), as_rays(rays2, "rays2")
+    check_same_length(f1, f2, "rays1", "rays2", minimum=5)
+    out = _opengv.relative_pose(f1, f2, method, **_ransac_kwargs(
+        max_error, max_iterations, min_iterations, confidence, seed))
+    if not out["success"] or out["num_inliers"] < max(5, min_num_inliers):
+        raise EstimationError(f"no relative pose: {out['num_inliers']} of {len(f1)} "
+                              f"correspondences agree (need {max(5, min_num_inliers)})")
+    return RelativePoseResult(rigid3d(out["R"], out["t"]), out["E"], out["inlier_mask"],
+                              out["num_inliers"], out["num_iterations"])
+
+
+def absolute_pose(rays, points3D, *, max_error: float, method: str = "kneip",
+                  max_iterations: int = 10000, min_iterations: int = 10,
+                  confidence: float = 0.9999, min_num_inliers: int = 6,
+                  seed: int | None = None) -> AbsolutePoseResult:
+    """cam_from_world by P3P LO-MSAC, refined on the inliers (non-linear, OpenGV).
+
+    `max_error` bounds the reprojection error in normalized image units. Raises
+    EstimationError when fewer than `min_num_inliers` correspondences agree.
+    """
+    check_choice("method", method, ABSOLUTE_METHODS)
+    f, X = as_rays(rays, "rays"), as_points3D(points3D, "points3D")
+    check_same_length(f, X, "rays", "points3D", minimum=3)
+    out = _opengv.absolute_pose(f, X, method, **_ransac_kwargs(
+        max_error, max_iterations, min_iterations, confidence, seed))
+    if not out["success"] or out["num_inliers"] < max(4, min_num_inliers):
+        raise EstimationError(f"no absolute pose: {out['num_inliers']} of {len(f)} "
+                              f"correspondences agree (need {max(4, min_num_inliers)})")
+    return AbsolutePoseResult(rigid3d(out["R"], out["t"]), out["inlier_mask"],
+                              out["num_inliers"], out["num_iterations"])
+
+
+def five_point(rays1, rays2, *, method: str = "nister") -> list[np.ndarray]:
+    """Every essential matrix (x2^T E x1 = 0, unit Frobenius norm) fitting five ray pairs."""
+    check_choice("method", method, RELATIVE_METHODS)
+    f1, f2 = as_rays(rays1, "rays1"), as_rays(rays2, "rays2")
+    if len(f1) != 5 or len(f2) != 5:
+        raise ValueError(f"five_point takes exactly 5 ray pairs, got {len(f1)} and {len(f2)}")
+    return list(_opengv.five_point(f1, f2, method))
+
+
+def p3p(rays, points3D, *, method: str = "kneip") -> list[pycolmap.Rigid3d]:
+    """Every cam_from_world fitting three ray/point pairs (up to four)."""
+    check_choice("method", method, ABSOLUTE_METHODS)
+    f, X = as_rays(rays, "rays"), as_points3D(points3D, "points3D")
+    if len(f) != 3 or len(X) != 3:
+        raise ValueError(f"p3p takes exactly 3 ray/point pairs, got {len(f)} and {len(X)}")
+    return [rigid3d(T[:, :3], T[:, 3]) for T in _opengv.p3p(f, X, method)]
+
+
+def triangulate_tracks(cams_from_world: list[pycolmap.Rigid3d], view_index, point_index, rays,
+                       *, num_points: int | None = None,
+                       min_angle_deg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Linear multi-view triangulation of many points at once.
+
+    Observation k sees point `point_index[k]` along `rays[k]` from camera
+    `cams_from_world[view_index[k]]`. Returns (P, 3) world points and a bool mask of
+    points in front of every observing camera whose widest pair of rays spans at
+    least `min_angle_deg`. Points with fewer than two observations are invalid.
+    """
+    f = as_rays(rays, "rays")
+    views = np.ascontiguousarray(view_index, dtype=np.int32).reshape(-1)
+    points = np.ascontiguousarray(point_index, dtype=np.int32).reshape(-1)
+    check_same_length(f, views, "rays", "view_index")
+    check_same_length(f, points, "rays", "point_index")
+    if num_points is None:
+        num_points = int(points.max()) + 1 if len(points) else 0
+    if len(views) and (views.min() < 0 or views.max() >= len(cams_from_world)):
+        raise ValueError("view_index out of range of cams_from_world")
+    if len(points) and (points.min() < 0 or points.max() >= num_points):
+        raise ValueError("point_index out of range of num_points")
+    if not np.isfinite(min_angle_deg) or min_angle_deg < 0:
+        raise ValueError(f"min_angle_deg must be finite and >= 0, got {min_angle_deg}")
+    poses = np.array([pose.matrix().reshape(-1) for pose in cams_from_world],
+                     dtype=np.float64).reshape(-1, 12)
+    return _opengv.triangulate_tracks(poses, views, points, f, int(num_points),
+                                      float(min_angle_deg))
+
+
+def triangulate(cam1_from_world: pycolmap.Rigid3d, cam2_from_world: pycolmap.Rigid3d,
+                rays1, rays2, *, min_angle_deg: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) world points from ray pairs, and a mask of those in front of both cameras
+    with a triangulation angle of at least `min_angle_deg`."""
+    f1, f2 = as_rays(rays1, "rays1"), as_rays(rays2, "rays2")
+    check_same_length(f1, f2, "rays1", "rays2")
+    n = len(f1)
+    index = np.arange(n, dtype=np.int32)
+    return triangulate_tracks(
+        [cam1_from_world, cam2_from_world],
+        np.concatenate([np.zeros(n, np.int32), np.ones(n, np.int32)]),
+        np.concatenate([index, index]), np.concatenate([f1, f2]),
+        num_points=n, min_angle_deg=min_angle_deg)
