@@ -15,7 +15,12 @@ from colmap_ext import __version__
 from colmap_ext.errors import UserError
 
 # subcommand -> (module, one-line help)
-COMMANDS: dict[str, tuple[str, str]] = {}
+COMMANDS: dict[str, tuple[str, str]] = {
+    "mapper": ("colmap_ext.mapper.cli", "Reconstruct poses and points from a COLMAP database "
+               "(known intrinsics), like `colmap mapper`."),
+    "evaluate": ("colmap_ext.evaluate", "Measure a model's poses against ground truth "
+                 "(the paper's R_err, T_err, C_err)."),
+}
 
 
 def build_parser() -> argparse.ArgumentParser:

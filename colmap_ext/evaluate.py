@@ -27,7 +27,8 @@ from colmap_ext.plots import plot_errors
 
 logger = logging.getLogger(__name__)
 
-# Ground-truth centres closer than this (in |C2 - C1|) to the reference's have no T_err.
+# Relative distance below which two camera centres count as one: a view from the reference's
+# centre has no T_err (distance in |C2 - C1|), and C2 on C1 gives no unit (in the set's size).
 _SAME_CENTRE = 1e-6
 
 # Per-image measures (report keys) and their units in the printed table.
@@ -41,7 +42,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ground_truth", type=Path, required=True,
                         help="Middlebury *_par.txt, a folder of Strecha *.camera files, or a COLMAP model")
     parser.add_argument("--output", type=Path, help="write the report as JSON to this file")
-    parser.add_argument("--plot", type=Path, help="draw the per-image errors to this image (.png, .pdf, .svg)")
+    parser.add_argument("--plot", type=Path,
+                        help="draw the per-image errors to this image (.png, .pdf, .svg)")
     parser.add_argument("--format", choices=FORMATS, help="ground-truth format (default: detected)")
 
 
@@ -60,7 +62,11 @@ def main(model_path: str | os.PathLike, ground_truth: str | os.PathLike,
 
 
 def evaluate(reconstruction: pycolmap.Reconstruction, ground_truth: GroundTruth) -> dict:
-    """The report: per-image errors in ground-truth order (None if unregistered) and their max/median."""
+    """The report: per-image errors in ground-truth order (None if unregistered) and their max/median.
+
+    Max and median run over the registered images, the reference included (its errors are 0
+    by construction, as in the paper's plots).
+    """
     names = list(ground_truth.poses)
     matches = match_images(reconstruction, names)
     registered = [name for name in names if name in matches]
@@ -122,16 +128,15 @@ def pose_errors(gt_poses: list[pycolmap.Rigid3d], est_poses: list[pycolmap.Rigid
     R_est, t_est = _relative_to_first(est_poses)
     C_gt, C_est = _centres(R_gt, t_gt), _centres(R_est, t_est)
     unit = np.linalg.norm(C_gt[1] - C_gt[0])
+    if unit <= _SAME_CENTRE * np.sqrt(_spread(C_gt) / len(C_gt)):
+        raise UserError("the first two ground-truth camera centres coincide: C_err has no unit")
+    if _spread(C_est) == 0:
+        raise UserError("all estimated camera centres coincide: C_err is undefined")
+    scale = np.sqrt(_spread(C_gt) / _spread(C_est))
     t_err = vector_angles_deg(t_gt, t_est)
     # No direction to compare where the ground-truth camera sits on the reference's centre:
     # the reference itself, and e.g. the last view of a closed ring (templeSR0011).
     t_err[np.linalg.norm(t_gt, axis=1) <= _SAME_CENTRE * unit] = 0.0
-    spread_est = _spread(C_est)
-    if unit == 0:
-        raise UserError("the first two ground-truth camera centres coincide: C_err has no unit")
-    if spread_est == 0:
-        raise UserError("all estimated camera centres coincide: C_err is undefined")
-    scale = np.sqrt(_spread(C_gt) / spread_est)
     return {
         "R_err_deg": rotation_angles_deg(np.swapaxes(R_gt, 1, 2) @ R_est),
         "T_err_deg": t_err,

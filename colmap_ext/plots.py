@@ -55,7 +55,7 @@ def _draw_series(axes, report: dict, series: tuple, colour: str) -> None:
     index = np.arange(1, len(entries) + 1)
     for key, _, style, marker in series:
         values = np.array([np.nan if entry[key] is None else entry[key] for entry in entries])
-        axes.plot(index, values, linestyle=style, marker=marker, color=colour, markersize=4)
+        axes.plot(index, values, linestyle=style, marker=marker, color=colour, markersize=4, clip_on=False)
     missing = index[[entry[series[0][0]] is None for entry in entries]]
     if missing.size:
             axes.plot(missing, np.zeros(missing.size), "x", color=colour, markersize=9,

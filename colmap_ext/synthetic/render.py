@@ -122,7 +122,7 @@ class Renderer:
 
     def radiance(self, image_index: int) -> np.ndarray:
         """Supersampled image in [0, 1]: texture of the nearest quad per ray, times its lighting."""
-        hits = cast_rays(self.scene.quads, self.scene.cams_from_world[image_index], self.rays)
+        hits = cast_rays(self.scene, self.scene.cams_from_world[image_index], self.rays)
         labels, u, v = hits.quad_index.ravel(), hits.u.ravel(), hits.v.ravel()
         values = np.full(labels.shape, BACKGROUND, np.float32)
         order = np.argsort(labels, kind="stable")

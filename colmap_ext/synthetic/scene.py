@@ -9,6 +9,7 @@ World frame: z up; cameras in COLMAP's convention (x right, y down, z forward).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import pycolmap
@@ -55,6 +56,11 @@ class Scene:
     def num_images(self) -> int:
         return len(self.image_names)
 
+    @cached_property
+    def quad_corners(self) -> np.ndarray:
+        """Corners of all quads, Qx4x3 (world frame), for culling."""
+        return np.stack([q.corners for q in self.quads])
+
 
 @dataclass
 class RayHits:
@@ -71,13 +77,14 @@ class RayHits:
 
 
 def default_camera() -> pycolmap.Camera:
-    """640x480 OPENCV camera, f = 600 px, off-centre principal point, barrel distortion k1 = -0.1."""
+    """Calibrated 640x480 OPENCV camera, f = 600 px, off-centre principal point, barrel distortion k1 = -0.1."""
     return pycolmap.Camera(
         camera_id=1,
         model="OPENCV",
         width=640,
         height=480,
         params=[600.0, 600.0, 318.0, 242.0, -0.1, 0.01, 0.0, 0.0],
+        has_prior_focal_length=True,
     )
 
 
@@ -213,12 +220,12 @@ def index_range(mins: np.ndarray, maxs: np.ndarray, low: float, high: float) -> 
 
 
 def cast_rays(
-    quads: list[Quad],
+    scene: Scene,
     cam_from_world: pycolmap.Rigid3d,
     rays: np.ndarray,
     near: float = 1e-3,
 ) -> RayHits:
-    """Nearest quad hit by each camera-frame ray (x, y, 1), for rays laid out as an HxWx2 array.
+    """Nearest quad of the scene hit by each camera-frame ray (x, y, 1), for rays laid out as an HxWx2 array.
 
     A z-buffer over the quads: for a plane n.X = c in the camera frame the ray t*(x, y, 1)
     hits at depth t = c / (n.(x, y, 1)). Each quad is only tested on the rows and columns
@@ -232,7 +239,7 @@ def cast_rays(
         np.full(shape, np.inf, np.float32), np.full(shape, -1, np.int32), np.zeros(shape, np.float32), np.zeros(shape, np.float32)
     )
     rotation, translation = cam_from_world.rotation.matrix(), cam_from_world.translation
-    corners = np.stack([q.corners for q in quads]) @ rotation.T + translation
+    corners = scene.quad_corners @ rotation.T + translation
     lo, hi = np.array([np.nanmin(x), np.nanmin(y)]), np.array([np.nanmax(x), np.nanmax(y)])
     col_min, col_max = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
     row_min, row_max = np.nanmin(y, axis=1), np.nanmax(y, axis=1)
@@ -242,7 +249,7 @@ def cast_rays(
             projected = corners[index, :, :2] / corners[index, :, 2:]
             rows = index_range(row_min, row_max, projected[:, 1].min(), projected[:, 1].max())
             cols = index_range(col_min, col_max, projected[:, 0].min(), projected[:, 0].max())
-        quad = quads[index]
+        quad = scene.quads[index]
         origin = rotation @ quad.origin + translation
         eu, ev = rotation @ quad.edge_u, rotation @ quad.edge_v
         intersect_quad(origin, eu, ev, x[rows, cols], y[rows, cols], near, index, hits.view(rows, cols))

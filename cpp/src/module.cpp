@@ -98,12 +98,16 @@ py::dict absolute_pose(const Eigen::Ref<const RowsX3>& rays, const Eigen::Ref<co
 std::vector<Eigen::Matrix3d> five_point_py(const Eigen::Ref<const RowsX3>& rays1,
                                            const Eigen::Ref<const RowsX3>& rays2,
                                            const std::string& method) {
+  if (rays1.rows() != 5 || rays2.rows() != 5)
+    throw std::invalid_argument("five_point takes exactly 5 ray pairs");
   return five_point(to_vectors(rays1), to_vectors(rays2), five_point_method(method));
 }
 
 std::vector<Eigen::Matrix<double, 3, 4>> p3p_py(const Eigen::Ref<const RowsX3>& rays,
                                                 const Eigen::Ref<const RowsX3>& points,
                                                 const std::string& method) {
+  if (rays.rows() != 3 || points.rows() != 3)
+    throw std::invalid_argument("p3p takes exactly 3 ray/point pairs");
   std::vector<Eigen::Matrix<double, 3, 4>> out;
   for (const Pose& pose : p3p(to_vectors(rays), to_vectors(points), p3p_method(method))) {
     Eigen::Matrix<double, 3, 4> T;

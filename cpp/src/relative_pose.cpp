@@ -2,8 +2,7 @@
 
 #include <Eigen/Dense>
 #include <Eigen/SVD>
-#include <opengv/relative_pose/CentralRelativeAdapter.hpp>
-#include <opengv/relative_pose/methods.hpp>
+#include <opengv/relative_pose/modules/main.hpp>
 
 #include "refinement.hpp"
 
@@ -11,7 +10,64 @@ namespace colmap_ext {
 namespace {
 
 using opengv::bearingVectors_t;
-using opengv::relative_pose::CentralRelativeAdapter;
+
+// The null space of the five epipolar constraints f1^T E f2 = 0 (OpenGV's E, row-major
+// in 9-vectors): the input of OpenGV's 5-point solvers. A fixed-size QR here instead of
+// the dynamic-size SVD inside opengv::relative_pose::fivept_nister/_stewenius.
+Eigen::Matrix<double, 9, 4> epipolar_null_space(const bearingVectors_t& rays1,
+                                                const bearingVectors_t& rays2, const int* indices) {
+  Eigen::Matrix<double, 9, 5> constraints;
+  for (int k = 0; k < 5; ++k) {
+    const Eigen::Vector3d& f1 = rays1[indices[k]];
+    const Eigen::Vector3d& f2 = rays2[indices[k]];
+    for (int r = 0; r < 3; ++r) constraints.col(k).segment<3>(3 * r) = f1[r] * f2;
+  }
+  const Eigen::HouseholderQR<Eigen::Matrix<double, 9, 5>> qr(constraints);
+  const Eigen::Matrix<double, 9, 9> Q = qr.householderQ();
+  return Q.rightCols<4>();
+}
+
+// Essential matrices in COLMAP's convention, unit Frobenius norm, from the null space.
+void five_point_from_null_space(const Eigen::Matrix<double, 9, 4>& null_space,
+                                FivePointMethod method, std::vector<Eigen::Matrix3d>* essentials) {
+  if (method == FivePointMethod::kNister) {
+    opengv::essentials_t solutions;
+    opengv::relative_pose::modules::fivept_nister_main(null_space, solutions);
+    for (const auto& E : solutions) {
+      if (E.allFinite()) essentials->push_back(E.transpose() / E.norm());
+    }
+  } else {
+    opengv::complexEssentials_t solutions;
+    opengv::relative_pose::modules::fivept_stewenius_main(null_space, solutions);
+    for (const auto& E : solutions) {
+      if (E.imag().norm() > 1e-8 * E.real().norm()) continue;  // complex root
+      if (E.real().allFinite()) essentials->push_back(E.real().transpose() / E.real().norm());
+    }
+  }
+}
+
+// Whether one of E's decompositions can put every sample pair in front of both cameras
+// (a necessary condition). For E = [t]x R and a pair at depths l1, l2 (l2 f2 = l1 R f1 + t),
+// (t x f2) . (E f1) = (l1 / l2) |t x R f1|^2 up to a sign shared by all pairs: pairs whose
+// depths differ in sign, which no decomposition puts in front together, differ in sign
+// here. Needs no decomposition, and unlike a triangulated depth it stays reliable for
+// distant points (l1 / l2 near 1).
+bool twisted_pair_consistent(const Eigen::Matrix3d& E, const bearingVectors_t& rays1,
+                             const bearingVectors_t& rays2, const int* indices, int count) {
+  // The epipole t (t^T E = 0) is orthogonal to every column of E.
+  const Eigen::Vector3d candidates[3] = {E.col(0).cross(E.col(1)), E.col(1).cross(E.col(2)),
+                                         E.col(2).cross(E.col(0))};
+  const Eigen::Vector3d* t = &candidates[0];
+  for (const Eigen::Vector3d& c : candidates)
+    if (c.squaredNorm() > t->squaredNorm()) t = &c;
+  bool positive = false, negative = false;
+  for (int k = 0; k < count; ++k) {
+    const double s = t->cross(rays2[indices[k]]).dot(E * rays1[indices[k]]);
+    positive |= s > 0;
+    negative |= s < 0;
+  }
+  return !(positive && negative);
+}
 
 // Depths of a ray pair's midpoint triangulation along each ray.
 Eigen::Vector2d midpoint_depths(const Pose& cam2_from_cam1, const Eigen::Vector3d& f1,
@@ -37,35 +93,40 @@ class RelativePoseEstimator {
 
   RelativePoseEstimator(const bearingVectors_t& rays1, const bearingVectors_t& rays2,
                         FivePointMethod method)
-      : rays1_(rays1), rays2_(rays2), method_(method) {
-    x1_.reserve(rays1.size());
-    x2_.reserve(rays2.size());
+      : rays1_(rays1), rays2_(rays2), method_(method), x1_(rays1.size()), x2_(rays2.size()) {
+    constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
     for (size_t i = 0; i < rays1.size(); ++i) {
-      x1_.push_back(rays1[i] / rays1[i].z());
-      x2_.push_back(rays2[i] / rays2[i].z());
-      valid_.push_back(rays1[i].z() > kMinRayZ && rays2[i].z() > kMinRayZ);
+      const bool valid = rays1[i].z() > kMinRayZ && rays2[i].z() > kMinRayZ;
+      x1_[i] = valid ? Eigen::Vector2d(rays1[i].head<2>() / rays1[i].z()) : Eigen::Vector2d(kNaN, kNaN);
+      x2_[i] = valid ? Eigen::Vector2d(rays2[i].head<2>() / rays2[i].z()) : Eigen::Vector2d(kNaN, kNaN);
     }
   }
 
   size_t num_data() const { return rays1_.size(); }
 
+  // OpenGV's 5-point solutions, less those that cannot put all five pairs in front.
   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const {
-    bearingVectors_t s1, s2;
-    for (int i : sample) {
-      s1.push_back(rays1_[i]);
-      s2.push_back(rays2_[i]);
+    std::vector<Eigen::Matrix3d> essentials;
+    five_point_from_null_space(epipolar_null_space(rays1_, rays2_, sample.data()), method_,
+                               &essentials);
+    for (const Eigen::Matrix3d& E : essentials) {
+      if (twisted_pair_consistent(E, rays1_, rays2_, sample.data(), kSampleSize))
+        models->push_back({E, {}, false});
     }
-    for (const Eigen::Matrix3d& E : five_point(s1, s2, method_)) models->push_back({E, {}, false});
   }
 
-  // Sampson error: first-order geometric error in normalized image units.
+  // Sampson error: first-order geometric error in normalized image units. NaN (never an
+  // inlier) for rays without normalized coordinates.
   double squared_error(const Model& model, size_t i) const {
-    if (!valid_[i]) return std::numeric_limits<double>::infinity();
-    const Eigen::Vector3d Ex1 = model.E * x1_[i];
-    const Eigen::Vector3d Etx2 = model.E.transpose() * x2_[i];
-    const double c = x2_[i].dot(Ex1);
-    const double d = Ex1.head<2>().squaredNorm() + Etx2.head<2>().squaredNorm();
-    return d > 0 ? c * c / d : std::numeric_limits<double>::infinity();
+    const Eigen::Matrix3d& E = model.E;
+    const double x1 = x1_[i].x(), y1 = x1_[i].y(), x2 = x2_[i].x(), y2 = x2_[i].y();
+    const double Ex1_0 = E(0, 0) * x1 + E(0, 1) * y1 + E(0, 2);
+    const double Ex1_1 = E(1, 0) * x1 + E(1, 1) * y1 + E(1, 2);
+    const double Ex1_2 = E(2, 0) * x1 + E(2, 1) * y1 + E(2, 2);
+    const double Etx2_0 = E(0, 0) * x2 + E(1, 0) * y2 + E(2, 0);
+    const double Etx2_1 = E(0, 1) * x2 + E(1, 1) * y2 + E(2, 1);
+    const double c = x2 * Ex1_0 + y2 * Ex1_1 + Ex1_2;
+    return c * c / (Ex1_0 * Ex1_0 + Ex1_1 * Ex1_1 + Etx2_0 * Etx2_0 + Etx2_1 * Etx2_1);
   }
 
   // Levenberg-Marquardt on the inliers' Sampson errors over rotation and the
@@ -104,27 +165,16 @@ class RelativePoseEstimator {
   const bearingVectors_t& rays1_;
   const bearingVectors_t& rays2_;
   FivePointMethod method_;
-  std::vector<Eigen::Vector3d> x1_, x2_;  // normalized image points (x/z, y/z, 1)
-  std::vector<bool> valid_;
+  std::vector<Eigen::Vector2d> x1_, x2_;  // normalized image points (x/z, y/z); NaN if none
 };
 
 }  // namespace
 
 std::vector<Eigen::Matrix3d> five_point(const bearingVectors_t& rays1,
                                         const bearingVectors_t& rays2, FivePointMethod method) {
-  CentralRelativeAdapter adapter(rays1, rays2);
+  const int indices[5] = {0, 1, 2, 3, 4};
   std::vector<Eigen::Matrix3d> essentials;
-  if (method == FivePointMethod::kNister) {
-    for (const auto& E : opengv::relative_pose::fivept_nister(adapter)) {
-      if (E.allFinite()) essentials.push_back(E.transpose());
-    }
-  } else {
-    for (const auto& E : opengv::relative_pose::fivept_stewenius(adapter)) {
-      if (E.imag().norm() > 1e-8 * E.real().norm()) continue;  // complex root
-      if (E.real().allFinite()) essentials.push_back(E.real().transpose());
-    }
-  }
-  for (Eigen::Matrix3d& E : essentials) E /= E.norm();
+  five_point_from_null_space(epipolar_null_space(rays1, rays2, indices), method, &essentials);
   return essentials;
 }
 

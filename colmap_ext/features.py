@@ -1,0 +1,356 @@
+"""SIFT features with known intrinsics and the paper's adaptive detector threshold.
+
+pycolmap's extractor writes every image with the given camera (model and parameters
+fixed by the user) and optional masks. Then, as in the paper, every image with fewer
+than `min_num_keypoints` keypoints is extracted again with half the SIFT peak
+threshold, down to a floor, and its features are replaced in the database. The
+re-extraction runs pycolmap's own extractor on a scratch database, so the new rows
+are exactly what COLMAP writes (keypoint format, masking, image reading).
+
+All input is checked before any work: a bad camera or an unreadable image is a
+one-line `UserError`, not a COLMAP log line halfway through.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sqlite3
+import statistics
+import tempfile
+import time
+from collections.abc import Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from PIL import Image
+from tqdm import tqdm
+
+from colmap_ext.errors import UserError
+
+CAMERA_MODES = {"single": pycolmap.CameraMode.SINGLE, "per_folder": pycolmap.CameraMode.PER_FOLDER}
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
+# The paper's rule: fewer keypoints than this and the detector runs again, more sensitive.
+DEFAULT_MIN_NUM_KEYPOINTS = 500
+DEFAULT_PEAK_THRESHOLD = pycolmap.SiftExtractionOptions().peak_threshold  # 0.02 / 3
+# Floor of the halving (0.0033, 0.0017, then 0.00125): lower, SIFT mostly finds noise.
+MIN_PEAK_THRESHOLD = 0.00125
+
+Features = tuple[np.ndarray, pycolmap.FeatureDescriptors]
+
+
+@dataclass(frozen=True)
+class FeatureSummary:
+    """Keypoints per image name before and after the adaptive rule, and the threshold used."""
+
+    initial_keypoints: dict[str, int]
+    final_keypoints: dict[str, int]
+    peak_thresholds: dict[str, float]
+    seconds: float
+
+    @property
+    def reextracted(self) -> list[str]:
+        """Images that needed a lower peak threshold."""
+        return [name for name, value in self.peak_thresholds.items()
+                if value < DEFAULT_PEAK_THRESHOLD]
+
+    def keypoint_stats(self, final: bool = True) -> tuple[int, float, int]:
+        """(min, median, max) keypoints per image."""
+        counts = list((self.final_keypoints if final else self.initial_keypoints).values())
+        return min(counts), statistics.median(counts), max(counts)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary."""
+        return {
+            "num_images": len(self.final_keypoints),
+            "num_reextracted": len(self.reextracted),
+            "keypoints_initial_min_median_max": self.keypoint_stats(final=False),
+            "keypoints_final_min_median_max": self.keypoint_stats(final=True),
+            "seconds": round(self.seconds, 3),
+            "images": {name: {"initial": self.initial_keypoints[name],
+                              "final": self.final_keypoints[name],
+                              "peak_threshold": self.peak_thresholds[name]}
+                       for name in self.final_keypoints},
+        }
+
+
+@contextlib.contextmanager
+def quiet_colmap_logs() -> Iterator[None]:
+    """Silence COLMAP's per-image INFO lines while our progress bars report; warnings stay."""
+    previous = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(previous, int(pycolmap.logging.Level.WARNING))
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = previous
+
+
+def check_camera(camera_model: str, camera_params: str | Sequence[float]) -> list[float]:
+    """The parameters as floats, checked against the COLMAP camera model."""
+    models = [name for name in pycolmap.CameraModelId.__members__ if name != "INVALID"]
+    if camera_model not in models:
+        raise UserError(f"unknown camera model {camera_model!r}; COLMAP's models are "
+                        f"{', '.join(models)}")
+    if isinstance(camera_params, str):
+        fields = [field.strip() for field in camera_params.replace(" ", ",").split(",")]
+        fields = [field for field in fields if field]
+    else:
+        fields = list(camera_params)
+    try:
+        params = [float(value) for value in fields]
+    except (TypeError, ValueError):
+        raise UserError(f"camera params must be numbers separated by commas, "
+                        f"got {camera_params!r}") from None
+    camera = pycolmap.Camera.create_from_model_name(0, camera_model, 1.0, 1, 1)
+    if not camera.focal_length_idxs():
+        raise UserError(f"camera model {camera_model} has no focal length; the relative "
+                        "pose solvers need a central projective camera")
+    if len(params) != len(camera.params):
+        raise UserError(f"camera model {camera_model} takes {len(camera.params)} params "
+                        f"({camera.params_info}), got {len(params)}")
+    if not all(math.isfinite(value) for value in params):
+        raise UserError(f"camera params must be finite, got {params}")
+    if any(params[i] <= 0 for i in camera.focal_length_idxs()):
+        raise UserError(f"focal lengths must be positive ({camera.params_info}), got {params}")
+    return params
+
+
+def list_images(image_path: str | os.PathLike,
+                image_names: Sequence[str] | None = None) -> list[str]:
+    """Image names relative to `image_path` (with '/'), sorted; all image files below it
+    unless `image_names` picks some."""
+    root = Path(image_path)
+    if not root.is_dir():
+        raise UserError(f"image folder not found: {root}")
+    if image_names is not None:
+        missing = [name for name in image_names if not (root / name).is_file()]
+        if missing:
+            raise UserError(f"image not found: {root / missing[0]}"
+                            + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+        names = list(image_names)
+    else:
+        names = [path.relative_to(root).as_posix() for path in root.rglob("*")
+                 if path.is_file() and path.suffix.lower() in IMAGE_EXTENSIONS]
+    if not names:
+        raise UserError(f"no images in {root} (looked for {', '.join(IMAGE_EXTENSIONS)})")
+    if len(set(names)) != len(names):
+        raise UserError("image_names lists an image twice")
+    return sorted(names)
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image decoded in full, so a truncated file fails here."""
+    if path.stat().st_size == 0:
+        raise UserError(f"image file is empty (0 bytes): {path}")
+    try:
+        with Image.open(path) as image:
+            image.load()
+            return image.size
+    except (OSError, ValueError, Image.DecompressionBombError) as exc:
+        raise UserError(f"cannot read image {path}: {exc}") from None
+
+
+def read_sizes(folder: Path, names: Sequence[str], suffix: str = "") -> dict[str, tuple[int, int]]:
+    """(width, height) of every `folder/<name><suffix>`, decoded in parallel threads."""
+    paths = [folder / f"{name}{suffix}" for name in names]
+    for path in paths:
+        if not path.is_file():
+            raise UserError(f"file not found: {path}")
+    with ThreadPoolExecutor(min(8, os.cpu_count() or 1)) as pool:
+        return dict(zip(names, pool.map(image_size, paths)))
+
+
+def check_images(image_path: str | os.PathLike, names: Sequence[str], camera_mode: str,
+                 camera_model: str, params: Sequence[float],
+                 mask_path: str | os.PathLike | None = None) -> dict[str, tuple[int, int]]:
+    """Check that every image reads, that images sharing a camera share its size and
+    contain its principal point, and that every image has a mask of its size."""
+    if camera_mode not in CAMERA_MODES:
+        raise UserError(f"unknown camera mode {camera_mode!r}; choose one of "
+                        f"{', '.join(CAMERA_MODES)}")
+    sizes = read_sizes(Path(image_path), names)
+    groups: dict[str, list[str]] = {}
+    for name in names:
+        groups.setdefault(posix_parent(name) if camera_mode == "per_folder" else "", []).append(name)
+    for members in groups.values():
+        odd = [name for name in members if sizes[name] != sizes[members[0]]]
+        if odd:
+            (w0, h0), (w1, h1) = sizes[members[0]], sizes[odd[0]]
+            raise UserError(f"images sharing one camera must have one size: {members[0]} is "
+                            f"{w0}x{h0}, {odd[0]} is {w1}x{h1} (camera mode {camera_mode})")
+    camera = pycolmap.Camera.create_from_model_name(0, camera_model, 1.0, 1, 1)
+    cx, cy = (params[i] for i in camera.principal_point_idxs())
+    for width, height in set(sizes.values()):
+        if not (0 <= cx <= width and 0 <= cy <= height):
+            raise UserError(f"principal point ({cx:g}, {cy:g}) is outside the {width}x{height} "
+                            "images: are the camera params for another image size?")
+    if mask_path is not None:
+        check_masks(Path(mask_path), sizes)
+    return sizes
+
+
+def check_masks(mask_path: Path, sizes: dict[str, tuple[int, int]]) -> None:
+    """Every image needs `MASK_PATH/<image name>.png` of its own size (COLMAP's layout)."""
+    if not mask_path.is_dir():
+        raise UserError(f"mask folder not found: {mask_path}")
+    mask_sizes = read_sizes(mask_path, list(sizes), suffix=".png")
+    for name, size in mask_sizes.items():
+        if size != sizes[name]:
+            raise UserError(f"mask {mask_path / (name + '.png')} is {size[0]}x{size[1]}, "
+                            f"its image is {sizes[name][0]}x{sizes[name][1]}")
+
+
+def posix_parent(name: str) -> str:
+    """The folder part of an image name ('' at the top level)."""
+    return name.rpartition("/")[0]
+
+
+def extract_features(database_path: str | os.PathLike, image_path: str | os.PathLike, *,
+                     camera_model: str, camera_params: str | Sequence[float],
+                     camera_mode: str = "single", mask_path: str | os.PathLike | None = None,
+                     min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS,
+                     image_names: Sequence[str] | None = None,
+                     progress: bool = True) -> FeatureSummary:
+    """Extract SIFT features of every image into a new database, with the adaptive rule."""
+    start = time.perf_counter()
+    params = check_camera(camera_model, camera_params)
+    if isinstance(min_num_keypoints, bool) or not isinstance(min_num_keypoints, int) \
+            or min_num_keypoints < 0:
+        raise UserError(f"min_num_keypoints must be a non-negative integer, "
+                        f"got {min_num_keypoints!r}")
+    names = list_images(image_path, image_names)
+    check_images(image_path, names, camera_mode, camera_model, params, mask_path)
+    check_new_database(Path(database_path))
+
+    reader = pycolmap.ImageReaderOptions(camera_model=camera_model,
+                                         camera_params=",".join(repr(p) for p in params))
+    if mask_path is not None:
+        reader.mask_path = Path(mask_path)
+    with quiet_colmap_logs():
+        pycolmap.extract_features(database_path, image_path, image_names=names,
+                                  camera_mode=CAMERA_MODES[camera_mode], reader_options=reader,
+                                  extraction_options=extraction_options(None),
+                                  device=pycolmap.Device.cpu)
+    initial = keypoint_counts(database_path, names)
+    thresholds = dict.fromkeys(names, DEFAULT_PEAK_THRESHOLD)
+    final = dict(initial)
+    low = [name for name in names if initial[name] < min_num_keypoints]
+    if low:
+        replacements = reextract(image_path, low, reader, min_num_keypoints, thresholds, progress)
+        replace_features(database_path, replacements)
+        final.update({name: len(keypoints) for name, (keypoints, _) in replacements.items()})
+    return FeatureSummary(initial, final, thresholds, time.perf_counter() - start)
+
+
+def extraction_options(peak_threshold: float | None) -> pycolmap.FeatureExtractionOptions:
+    """CPU SIFT on all cores (said explicitly, which also spares COLMAP's memory warning)."""
+    options = pycolmap.FeatureExtractionOptions()
+    options.num_threads = os.cpu_count() or 1
+    if peak_threshold is not None:
+        options.sift.peak_threshold = peak_threshold
+    return options
+
+
+def check_new_database(database_path: Path) -> None:
+    """Features go into a database without images: mixing runs would mix thresholds."""
+    if not database_path.parent.is_dir():
+        raise UserError(f"folder of the database not found: {database_path.parent}")
+    if database_path.exists():
+        db = pycolmap.Database.open(database_path)
+        try:
+            num_images = db.num_images()
+        finally:
+            db.close()
+        if num_images:
+            raise UserError(f"database {database_path} already holds {num_images} images; "
+                            "extract into a new database")
+
+
+def keypoint_counts(database_path: str | os.PathLike, names: Sequence[str]) -> dict[str, int]:
+    """Keypoints per image name; an image COLMAP skipped is an error naming it."""
+    db = pycolmap.Database.open(database_path)
+    try:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        missing = [name for name in names if name not in ids]
+        if missing:
+            raise UserError(f"COLMAP could not extract features from {missing[0]}"
+                            + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+        return {name: db.num_keypoints_for_image(ids[name]) for name in names}
+    finally:
+        db.close()
+
+
+def reextract(image_path: str | os.PathLike, names: list[str],
+              reader: pycolmap.ImageReaderOptions, min_num_keypoints: int,
+              thresholds: dict[str, float], progress: bool) -> dict[str, Features]:
+    """Halve the peak threshold of the images still short of keypoints until each has
+    enough or the floor is reached; updates `thresholds`, returns the last features."""
+    features: dict[str, Features] = {}
+    pending = list(names)
+    threshold = DEFAULT_PEAK_THRESHOLD
+    with tqdm(total=len(names), desc="lower SIFT threshold", unit="image",
+              disable=not progress) as bar:
+        while pending and threshold > MIN_PEAK_THRESHOLD:
+            threshold = max(threshold / 2, MIN_PEAK_THRESHOLD)
+            features.update(extract_to_memory(image_path, pending, reader, threshold))
+            thresholds.update(dict.fromkeys(pending, threshold))
+            still_low = [name for name in pending if len(features[name][0]) < min_num_keypoints]
+            bar.update(len(pending) - len(still_low))
+            pending = still_low
+        bar.update(len(pending))
+    return features
+
+
+def extract_to_memory(image_path: str | os.PathLike, names: list[str],
+                      reader: pycolmap.ImageReaderOptions, peak_threshold: float
+                      ) -> dict[str, Features]:
+    """Keypoints and descriptors of `names` from pycolmap's extractor on a scratch
+    database (one camera per image there: only the features are kept)."""
+    with tempfile.TemporaryDirectory(prefix="colmap-ext-sift-") as scratch:
+        database_path = Path(scratch) / "database.db"
+        with quiet_colmap_logs():
+            pycolmap.extract_features(database_path, image_path, image_names=names,
+                                      camera_mode=pycolmap.CameraMode.PER_IMAGE,
+                                      reader_options=reader,
+                                      extraction_options=extraction_options(peak_threshold),
+                                      device=pycolmap.Device.cpu)
+        db = pycolmap.Database.open(database_path)
+        try:
+            ids = {image.name: image.image_id for image in db.read_all_images()}
+            missing = [name for name in names if name not in ids]
+            if missing:
+                raise UserError(f"COLMAP could not extract features from {missing[0]} "
+                                f"again (peak threshold {peak_threshold:g})")
+            return {name: (db.read_keypoints(ids[name]), db.read_descriptors(ids[name]))
+                    for name in names}
+        finally:
+            db.close()
+
+
+def replace_features(database_path: str | os.PathLike, features: dict[str, Features]) -> None:
+    """Replace the keypoints and descriptors of the named images.
+
+    pycolmap 4.2.1 can update keypoints but not descriptors, so both old rows are
+    deleted with SQL (COLMAP's schema: tables keyed by image_id) and rewritten by pycolmap.
+    """
+    db = pycolmap.Database.open(database_path)
+    try:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+    finally:
+        db.close()
+    rows = [(ids[name],) for name in features]
+    with contextlib.closing(sqlite3.connect(database_path)) as connection, connection:
+        connection.executemany("DELETE FROM keypoints WHERE image_id = ?", rows)
+        connection.executemany("DELETE FROM descriptors WHERE image_id = ?", rows)
+    db = pycolmap.Database.open(database_path)
+    try:
+        with pycolmap.DatabaseTransaction(db):
+            for name, (keypoints, descriptors) in features.items():
+                db.write_keypoints(ids[name], keypoints)
+                db.write_descriptors(ids[name], descriptors)
+    finally:
+        db.close()

@@ -1,0 +1,18 @@
+"""The calibrated incremental mapper: a drop-in for `colmap mapper` with known intrinsics.
+
+One module per step of the method (SPEC.md, steps 4 to 7):
+- `model`: the growing model (poses, points, tracks) over the database's features
+- `two_view`: verified matches, from the database or our 5-point RANSAC
+- `initial_pair`: choosing and reconstructing the first two images
+- `registration`: 2D-3D correspondences and P3P RANSAC for the next image
+- `guided_matching`: visually and geometrically compatible features in registered images
+- `triangulation`: new points and longer tracks from those features
+- `bundle_adjustment`: local and global refinement through pycolmap
+- `pruning`: dropping incompatible observations and weakly supported points
+- `pipeline`: the loop that runs them, and `run()`
+"""
+
+from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.pipeline import run
+
+__all__ = ["MapperOptions", "run"]

@@ -1,0 +1,73 @@
+"""Bundle adjustment through pycolmap (Ceres), intrinsics constant.
+
+The model is copied into a pycolmap.Reconstruction holding just the images and
+points of the problem, adjusted, and the refined poses and points copied back.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+
+from colmap_ext.mapper.model import Model
+from colmap_ext.mapper.options import MapperOptions
+
+
+def to_reconstruction(model: Model, image_ids: list[int],
+                      point_ids: list[int]) -> pycolmap.Reconstruction:
+    """A reconstruction of the given registered images and points (ids kept)."""
+    reconstruction = pycolmap.Reconstruction()
+    for camera_id in sorted({model.db.images[i].camera_id for i in image_ids}):
+        reconstruction.add_camera_with_trivial_rig(model.cameras[camera_id])
+    for image_id in image_ids:
+        features = model.db.images[image_id]
+        image = pycolmap.Image(name=features.name, keypoints=features.keypoints,
+                               camera_id=features.camera_id, image_id=image_id)
+        reconstruction.add_image_with_trivial_frame(image, model.poses[image_id])
+    included = set(image_ids)
+    for point_id in point_ids:
+        track = pycolmap.Track()
+        for image_id, kp in model.tracks[point_id].items():
+            if image_id in included:
+                track.add_element(image_id, kp)
+        reconstruction.add_point3D_with_id(
+            point_id, pycolmap.Point3D(xyz=model.xyz[point_id], track=track))
+    return reconstruction
+
+
+def bundle_adjust(model: Model, variable_image_ids: list[int], options: MapperOptions,
+                  max_iterations: int) -> None:
+    """Adjust the poses of `variable_image_ids` and every point they observe; the other
+    registered images observing those points hold their poses constant. The first
+    registered image fixes the gauge (identity pose, and the scale with the second)."""
+    variable = set(variable_image_ids)
+    point_ids = sorted({int(p) for i in variable for p in model.observations(i)[1]})
+    observing = {i for p in point_ids for i in model.tracks[p]}
+    image_ids = sorted(variable | observing)
+    constant = set(image_ids) - variable
+    reconstruction = to_reconstruction(model, image_ids, point_ids)
+
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in image_ids:
+        config.add_image(image_id)
+    for camera_id in reconstruction.cameras:
+        config.set_constant_cam_intrinsics(camera_id)
+    for image_id in constant:
+        config.set_constant_rig_from_world_pose(reconstruction.images[image_id].frame_id)
+    if len(constant) < 2:
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+
+    ba_options = pycolmap.BundleAdjustmentOptions(
+        refine_focal_length=False, refine_principal_point=False, refine_extra_params=False,
+        print_summary=False)
+    ba_options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba_options.ceres.loss_function_scale = options.ba_loss_scale_px
+    ba_options.ceres.solver_options.max_num_iterations = max_iterations
+    ba_options.ceres.solver_options.num_threads = options.num_threads \
+        if options.num_threads > 0 else 2
+    pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
+
+    for image_id in variable:
+        model.poses[image_id] = reconstruction.images[image_id].cam_from_world()
+    for point_id in point_ids:
+        model.xyz[point_id] = reconstruction.points3D[point_id].xyz

@@ -1,0 +1,101 @@
+"""The initial pair (paper, step 3): 5-point RANSAC for the relative pose, metric
+triangulation of the consensus set, guided matching for more (see pipeline)."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+import solvers
+from colmap_ext.errors import UserError
+from colmap_ext.mapper.model import Model
+from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.two_view import Pair
+
+# Pairs evaluated when the mapper chooses: the ones with most verified matches.
+MAX_CANDIDATE_PAIRS = 40
+
+
+@dataclass
+class TwoViewReconstruction:
+    pair: Pair
+    cam2_from_cam1: pycolmap.Rigid3d
+    matches: np.ndarray  # (n, 2) matches that triangulate well
+    xyz: np.ndarray  # (n, 3) their points, in camera 1's frame
+    median_angle_deg: float
+
+
+def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
+                     options: MapperOptions) -> TwoViewReconstruction | None:
+    """Relative pose and triangulated consensus set of a pair, or None if it is weak."""
+    id1, id2 = pair
+    focal = 0.5 * (model.focal(id1) + model.focal(id2))
+    try:
+        result = solvers.relative_pose(
+            model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
+            max_error=options.two_view_max_error_px / focal,
+            min_num_inliers=options.init_min_num_inliers, seed=options.seed)
+    except solvers.EstimationError:
+        return None
+    inliers = matches[result.inlier_mask]
+    identity = pycolmap.Rigid3d()
+    xyz, valid = solvers.triangulate(identity, result.cam2_from_cam1, model.rays[id1][inliers[:, 0]],
+                                     model.rays[id2][inliers[:, 1]],
+                                     min_angle_deg=options.min_tri_angle_deg)
+    if valid.sum() < options.init_min_num_inliers:
+        return None
+    xyz, inliers = xyz[valid], inliers[valid]
+    centre2 = result.cam2_from_cam1.inverse().translation
+    ray1 = xyz / np.linalg.norm(xyz, axis=1, keepdims=True)
+    ray2 = (xyz - centre2) / np.linalg.norm(xyz - centre2, axis=1, keepdims=True)
+    angles = np.degrees(np.arccos(np.clip(np.sum(ray1 * ray2, axis=1), -1, 1)))
+    return TwoViewReconstruction(pair, result.cam2_from_cam1, inliers, xyz,
+                                 float(np.median(angles)))
+
+
+def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
+                        excluded: set[Pair]) -> TwoViewReconstruction | None:
+    """The requested pair, or the best-conditioned among the pairs with most matches:
+    most well-triangulated points among those with a wide enough median angle."""
+    if options.init_image_id1 >= 0 or options.init_image_id2 >= 0:
+        return _requested_pair(model, matches, options)
+    candidates = sorted((pair for pair, m in matches.items()
+                         if len(m) >= options.init_min_num_inliers and pair not in excluded),
+                        key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
+    best = None
+    for pair in candidates:
+        two_view = reconstruct_pair(model, pair, matches[pair], options)
+        if two_view is None or two_view.median_angle_deg < options.init_min_tri_angle_deg:
+            excluded.add(pair)
+            continue
+        if best is None or len(two_view.matches) > len(best.matches):
+            best = two_view
+    return best
+
+
+def _requested_pair(model: Model, matches: dict[Pair, np.ndarray],
+                    options: MapperOptions) -> TwoViewReconstruction:
+    id1, id2 = options.init_image_id1, options.init_image_id2
+    for image_id in (id1, id2):
+        if image_id not in model.db.images:
+            raise UserError(f"--Mapper.init_image_id1/2: no image with id {image_id} in the database")
+    key = (min(id1, id2), max(id1, id2))
+    if key not in matches:
+        raise UserError(f"initial images {id1} and {id2} have no verified matches")
+    two_view = reconstruct_pair(model, key, matches[key], options)
+    if two_view is None:
+        raise UserError(f"initial images {id1} and {id2} do not give a relative pose "
+                        f"with enough well-triangulated points")
+    return two_view
+
+
+def initialize(model: Model, two_view: TwoViewReconstruction) -> None:
+    """Register the pair (camera 1 at the origin, unit baseline) and add its points."""
+    id1, id2 = two_view.pair
+    model.register(id1, pycolmap.Rigid3d())
+    model.register(id2, two_view.cam2_from_cam1)
+    for (kp1, kp2), xyz in zip(two_view.matches.tolist(), two_view.xyz):
+        if model.point_of[id1][kp1] < 0 and model.point_of[id2][kp2] < 0:
+            model.add_point(xyz, {id1: kp1, id2: kp2})

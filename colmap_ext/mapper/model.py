@@ -1,0 +1,122 @@
+"""The growing model: registered poses and 3D points with their tracks.
+
+Features live in arrays per image (normalized coordinates, unit rays, unit
+descriptors, and `point_of`, the point each keypoint observes or -1). Points live in
+a growable (P, 3) array indexed by point id, with a dict per point for its track
+(image id -> keypoint index): every step touches a neighbourhood of images, so
+per-image arrays keep the geometry vectorised and tracks stay cheap to edit.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+
+from colmap_ext.database import DatabaseContents
+
+
+def _unit_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    d = descriptors.astype(np.float32)
+    norms = np.linalg.norm(d, axis=1, keepdims=True)
+    return d / np.maximum(norms, 1e-12)
+
+
+class Model:
+    def __init__(self, db: DatabaseContents, image_ids: list[int] | None = None) -> None:
+        self.db = db
+        self.image_ids = sorted(image_ids if image_ids is not None else db.images)
+        self.cameras = db.cameras
+        self.keypoints: dict[int, np.ndarray] = {}
+        self.normalized: dict[int, np.ndarray] = {}
+        self.rays: dict[int, np.ndarray] = {}
+        self.descriptors: dict[int, np.ndarray] = {}
+        self.point_of: dict[int, np.ndarray] = {}
+        for image_id in self.image_ids:
+            image = db.images[image_id]
+            camera = db.cameras[image.camera_id]
+            xy = camera.cam_from_img(image.keypoints) if len(image.keypoints) \
+                else np.zeros((0, 2))
+            rays = np.hstack([xy, np.ones((len(xy), 1))])
+            self.keypoints[image_id] = image.keypoints
+            self.normalized[image_id] = xy
+            self.rays[image_id] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+            self.descriptors[image_id] = _unit_descriptors(image.descriptors)
+            self.point_of[image_id] = np.full(len(image.keypoints), -1, dtype=np.int64)
+        self.poses: dict[int, pycolmap.Rigid3d] = {}
+        self.registration_order: list[int] = []
+        self.xyz = np.zeros((1024, 3))
+        self.tracks: dict[int, dict[int, int]] = {}
+        self.born: dict[int, int] = {}  # point id -> number of registered images at creation
+        self._next_point_id = 1  # COLMAP's point ids start at 1
+
+    # --- cameras ----------------------------------------------------------------
+    def camera(self, image_id: int) -> pycolmap.Camera:
+        return self.cameras[self.db.images[image_id].camera_id]
+
+    def focal(self, image_id: int) -> float:
+        camera = self.camera(image_id)
+        return 0.5 * (camera.focal_length_x + camera.focal_length_y)
+
+    def register(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
+        self.poses[image_id] = cam_from_world
+        self.registration_order.append(image_id)
+
+    @property
+    def num_registered(self) -> int:
+        return len(self.poses)
+
+    # --- points -----------------------------------------------------------------
+    def add_point(self, xyz: np.ndarray, track: dict[int, int]) -> int:
+        point_id = self._next_point_id
+        self._next_point_id += 1
+        if point_id >= len(self.xyz):
+            self.xyz = np.vstack([self.xyz, np.zeros_like(self.xyz)])
+        self.xyz[point_id] = xyz
+        self.tracks[point_id] = dict(track)
+        self.born[point_id] = self.num_registered
+        for image_id, kp in track.items():
+            self.point_of[image_id][kp] = point_id
+        return point_id
+
+    def add_observation(self, point_id: int, image_id: int, kp: int) -> None:
+        self.tracks[point_id][image_id] = kp
+        self.point_of[image_id][kp] = point_id
+
+    def delete_observation(self, point_id: int, image_id: int) -> None:
+        kp = self.tracks[point_id].pop(image_id)
+        self.point_of[image_id][kp] = -1
+
+    def delete_point(self, point_id: int) -> None:
+        for image_id, kp in self.tracks.pop(point_id).items():
+            self.point_of[image_id][kp] = -1
+        del self.born[point_id]
+
+    def observations(self, image_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoint indices of an image that observe points, and those point ids."""
+        kps = np.flatnonzero(self.point_of[image_id] >= 0)
+        return kps, self.point_of[image_id][kps]
+
+    # --- geometry ---------------------------------------------------------------
+    def reprojection_errors(self, image_id: int, kps: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+        """Pixel distance between keypoints and the projections of `xyz`; inf behind."""
+        pose = self.poses[image_id].matrix()
+        x_cam = xyz @ pose[:, :3].T + pose[:, 3]
+        errors = np.full(len(kps), np.inf)
+        front = x_cam[:, 2] > 1e-9
+        if front.any():
+            projected = self.camera(image_id).img_from_cam(x_cam[front], check_cheirality=False)
+            errors[front] = np.linalg.norm(projected - self.keypoints[image_id][kps[front]], axis=1)
+        return errors
+
+    def centre(self, image_id: int) -> np.ndarray:
+        return self.poses[image_id].inverse().translation
+
+    def covisible_images(self, image_id: int) -> dict[int, int]:
+        """Registered images sharing points with `image_id`, with the number shared."""
+        _, point_ids = self.observations(image_id)
+        counts: dict[int, int] = {}
+        for point_id in point_ids:
+            for other in self.tracks[point_id]:
+                if other != image_id:
+                    counts[other] = counts.get(other, 0) + 1
+        return counts

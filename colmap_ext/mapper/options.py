@@ -1,0 +1,59 @@
+"""The mapper's parameters, with the defaults the method uses and why."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass
+class MapperOptions:
+    # Registration order: "visibility" (COLMAP's: the image seeing most model points
+    # first) or "sequence" (the paper's: the image next in name order to a registered one).
+    order: str = "visibility"
+    # Initial pair (COLMAP's --Mapper.init_image_id1/2); -1 lets the mapper choose.
+    init_image_id1: int = -1
+    init_image_id2: int = -1
+    # Two-view geometry: Sampson error threshold and the support a pair needs.
+    two_view_max_error_px: float = 2.0
+    two_view_min_num_inliers: int = 15
+    # Initial pair: enough inliers and a median triangulation angle that fixes depth.
+    init_min_num_inliers: int = 30
+    init_min_tri_angle_deg: float = 4.0
+    # Absolute pose (P3P RANSAC): reprojection threshold and the support it needs.
+    abs_pose_max_error_px: float = 4.0
+    abs_pose_min_num_inliers: int = 15
+    abs_pose_min_inlier_ratio: float = 0.2
+    # Triangulation and pruning: an observation is geometrically compatible with a point
+    # when it reprojects within this error; a point needs this angle between its rays.
+    max_reproj_error_px: float = 3.0
+    min_tri_angle_deg: float = 1.5
+    # Guided matching (paper, step 4c) against the guided_num_images registered images
+    # most connected to the new one: per keypoint, its guided_num_neighbors nearest
+    # descriptors there; a feature is compatible when its descriptor angle is below
+    # max_descriptor_distance (radians, as COLMAP's SIFT matcher measures it) and it lies
+    # within max_reproj_error_px of the epipolar line. The closest descriptor wins.
+    guided_num_neighbors: int = 20
+    guided_num_images: int = 8
+    max_descriptor_distance: float = 0.7
+    # Pruning (paper, step 4e): a point needs support in this many images, once the
+    # images registered after its creation have had their chance to observe it.
+    min_track_length: int = 3
+    track_grace_registrations: int = 3
+    # Bundle adjustment (pycolmap/Ceres, intrinsics constant): local around each new
+    # image, global whenever the model has grown by ba_global_images_ratio, and at the end.
+    ba_local_num_images: int = 6
+    ba_local_max_iterations: int = 25
+    ba_global_images_ratio: float = 1.1
+    ba_global_max_iterations: int = 50
+    ba_loss_scale_px: float = 1.0
+    # Images that fail to register are tried again this many times as the model grows.
+    max_registration_trials: int = 3
+    # A model smaller than this is not kept; the remaining images start a new model.
+    min_model_size: int = 3
+    max_num_models: int = 50
+    seed: int | None = None
+    num_threads: int = -1
+
+    def __post_init__(self) -> None:
+        if self.order not in ("visibility", "sequence"):
+            raise ValueError(f"order must be 'visibility' or 'sequence', got {self.order!r}")

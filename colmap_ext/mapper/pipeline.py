@@ -1,0 +1,266 @@
+"""The incremental loop and `run()`: initial pair, then register, triangulate,
+adjust and prune image after image; several models when the images fall apart."""
+
+from __future__ import annotations
+
+import time
+from collections import defaultdict
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from tqdm import tqdm
+
+from colmap_ext.database import read_database
+from colmap_ext.errors import UserError
+from colmap_ext.mapper.bundle_adjustment import bundle_adjust, to_reconstruction
+from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
+from colmap_ext.mapper.model import Model
+from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.pruning import prune
+from colmap_ext.mapper.registration import (descriptor_correspondences, register_image,
+                                            track_correspondences)
+from colmap_ext.mapper.triangulation import triangulate_image
+from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
+from colmap_ext.model_io import check_output_path, write_json, write_models
+
+
+# Images tried per round before the mapper gives up on growing the model.
+MAX_CANDIDATES_PER_ROUND = 10
+
+
+class StageTimer:
+    """Wall time per pipeline stage, summed over calls."""
+
+    def __init__(self) -> None:
+        self.seconds: dict[str, float] = defaultdict(float)
+
+    @contextmanager
+    def __call__(self, stage: str):
+        start = time.perf_counter()
+        try:
+            yield
+        finally:
+            self.seconds[stage] += time.perf_counter() - start
+
+
+class IncrementalMapper:
+    """Grows one model from an initial pair over a set of images."""
+
+    def __init__(self, model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
+                 timer: StageTimer, progress: tqdm | None) -> None:
+        self.model = model
+        self.matches = matches
+        self.graph = pair_graph(matches)
+        # Raw matches of every pair, verified or not: putative 2D-3D correspondences for
+        # P3P RANSAC, which bridges pairs whose two-view verification failed.
+        self.raw_graph = pair_graph({p: m for p, m in model.db.raw_matches.items()
+                                     if p[0] in model.point_of and p[1] in model.point_of})
+        self.options = options
+        self.timer = timer
+        self.progress = progress
+        self.sequence_index = {image_id: i for i, image_id in enumerate(
+            sorted(model.image_ids, key=lambda i: model.db.images[i].name))}
+        self.trials: dict[int, int] = defaultdict(int)
+        self.num_images_at_global_ba = 0
+
+    def run(self, excluded_pairs: set[Pair]) -> bool:
+        """Reconstruct from the best initial pair; False when no pair initialises."""
+        with self.timer("initial pair"):
+            two_view = choose_initial_pair(self.model, self.matches, self.options, excluded_pairs)
+        if two_view is None:
+            return False
+        initialize(self.model, two_view)
+        id1, id2 = two_view.pair
+        with self.timer("triangulation"):
+            triangulate_image(self.model, id2, [id1], self.options, min_views=2)
+        self._global_adjustment()
+        self._advance(2)
+        while self._register_next():
+            pass
+        self._global_adjustment(final=True)
+        return True
+
+    def _advance(self, n: int) -> None:
+        if self.progress is not None:
+            self.progress.update(n)
+
+    def _candidates(self) -> list[int]:
+        """Unregistered images to try, best first, in the configured order."""
+        model = self.model
+        unregistered = [i for i in model.image_ids if i not in model.poses
+                        and self.trials[i] < self.options.max_registration_trials
+                        and any(o in model.poses for o in self.raw_graph.get(i, {}))]
+        visible = {i: len(np.unique(track_correspondences(model, i, self.graph)[1]))
+                   for i in unregistered}
+        if self.options.order == "sequence":
+            registered = np.array([self.sequence_index[i] for i in model.poses])
+            distance = {i: np.abs(registered - self.sequence_index[i]).min() for i in unregistered}
+            return sorted(unregistered, key=lambda i: (distance[i], -visible[i]))
+        return sorted(unregistered, key=lambda i: (-visible[i], self.sequence_index[i]))
+
+    def _neighbours(self, image_id: int, limit: int) -> list[int]:
+        """Registered images most connected to `image_id`: shared points, then matches."""
+        model = self.model
+        shared = model.covisible_images(image_id) if image_id in model.poses else {}
+        verified = {o: len(m) for o, m in self.graph.get(image_id, {}).items() if o in model.poses}
+        raw = {o: len(m) for o, m in self.raw_graph.get(image_id, {}).items() if o in model.poses}
+        others = set(shared) | set(verified) or set(raw)
+        return sorted(others, key=lambda o: (
+            -shared.get(o, 0), -verified.get(o, 0), -raw.get(o, 0)))[:limit]
+
+    def _register_next(self) -> bool:
+        options = self.options
+        for image_id in self._candidates()[:MAX_CANDIDATES_PER_ROUND]:
+            with self.timer("registration"):
+                registered = self._register(image_id)
+            if not registered:
+                self.trials[image_id] += 1
+                continue
+            self._after_registration(image_id)
+            self._advance(1)
+            self.trials.clear()  # the model has grown: failed images deserve a new chance
+            return True
+        return False
+
+    def _register(self, image_id: int) -> bool:
+        """P3P on correspondences through verified matches and descriptor matches to
+        nearby points; failing that, through raw matches too (pairs whose two-view
+        verification failed can still hold enough inliers for an absolute pose)."""
+        model, options = self.model, self.options
+        neighbours = self._neighbours(image_id, options.guided_num_images)
+        kps, point_ids = descriptor_correspondences(model, image_id, neighbours, options)
+        for graph in (self.graph, self.raw_graph):
+            more_kps, more_ids = track_correspondences(model, image_id, graph)
+            kps, point_ids = np.concatenate([kps, more_kps]), np.concatenate([point_ids, more_ids])
+            if register_image(model, image_id, kps, point_ids, options):
+                return True
+        return False
+
+    def _after_registration(self, image_id: int) -> None:
+        options = self.options
+        with self.timer("triangulation"):
+            triangulate_image(self.model, image_id,
+                              self._neighbours(image_id, options.guided_num_images), options,
+                              min_views=2)
+        if self.model.num_registered >= options.ba_global_images_ratio * self.num_images_at_global_ba:
+            self._global_adjustment()
+            return
+        local = [image_id] + self._neighbours(image_id, options.ba_local_num_images)
+        with self.timer("bundle adjustment"):
+            bundle_adjust(self.model, local, options, options.ba_local_max_iterations)
+        with self.timer("pruning"):
+            prune(self.model, local, options)
+
+    def _global_adjustment(self, final: bool = False) -> None:
+        model, options = self.model, self.options
+        registered = list(model.poses)
+        for _ in range(2 if final else 1):
+            with self.timer("bundle adjustment"):
+                bundle_adjust(model, registered, options, options.ba_global_max_iterations)
+            with self.timer("pruning"):
+                prune(model, registered, options, final=final)
+        self.num_images_at_global_ba = model.num_registered
+
+
+def reconstruct(database_path: str | Path, options: MapperOptions,
+                image_names: list[str] | None = None, timer: StageTimer | None = None,
+                progress: bool = True) -> list[pycolmap.Reconstruction]:
+    """All models that the database's images give, largest first (nothing written)."""
+    timer = timer or StageTimer()
+    with timer("read database"):
+        db = read_database(database_path)
+    image_ids = _select_images(db, image_names)
+    with timer("two-view geometry"):
+        model = Model(db, image_ids)
+        matches = verified_matches(model, options, progress)
+    reconstructions: list[pycolmap.Reconstruction] = []
+    remaining = image_ids
+    excluded_pairs: set[Pair] = set()
+    bar = tqdm(total=len(image_ids), desc="registered", unit="image", disable=not progress)
+    try:
+        while len(remaining) >= 2 and len(reconstructions) < options.max_num_models:
+            mapper = IncrementalMapper(model, matches, options, timer, bar)
+            if not mapper.run(excluded_pairs):
+                break
+            if model.num_registered >= options.min_model_size:
+                with timer("export"):
+                    reconstructions.append(export(model))
+            remaining = [i for i in remaining if i not in model.poses]
+            model = Model(db, remaining)
+            matches = {p: m for p, m in matches.items() if p[0] in remaining and p[1] in remaining}
+    finally:
+        bar.close()
+    return sorted(reconstructions, key=lambda r: -r.num_reg_images())
+
+
+def _select_images(db, image_names: list[str] | None) -> list[int]:
+    if not image_names:
+        return sorted(db.images)
+    by_name = {image.name: image_id for image_id, image in db.images.items()}
+    missing = [name for name in image_names if name not in by_name]
+    if missing:
+        raise UserError(f"images in the image list are not in the database: {', '.join(missing[:5])}")
+    return sorted(by_name[name] for name in image_names)
+
+
+def export(model: Model) -> pycolmap.Reconstruction:
+    """The model as a pycolmap.Reconstruction: registered images and supported points."""
+    point_ids = [p for p, track in model.tracks.items() if len(track) >= 2]
+    reconstruction = to_reconstruction(model, sorted(model.poses), point_ids)
+    reconstruction.update_point_3d_errors()
+    return reconstruction
+
+
+def run(database_path: str | Path, image_path: str | Path, output_path: str | Path,
+        options: MapperOptions | None = None, *, overwrite: bool = False,
+        output_type: str = "BIN", image_names: list[str] | None = None,
+        progress: bool = True) -> dict[int, pycolmap.Reconstruction]:
+    """Reconstruct, then write OUTPUT/0, OUTPUT/1, ... and OUTPUT/mapper_summary.json,
+    like `pycolmap.incremental_mapping`. The database is read, never written."""
+    options = options or MapperOptions()
+    image_path = Path(image_path)
+    if not image_path.is_dir():
+        raise UserError(f"image path not found: {image_path}")
+    output_path = check_output_path(output_path, overwrite)
+    timer = StageTimer()
+    start = time.perf_counter()
+    reconstructions = reconstruct(database_path, options, image_names, timer, progress)
+    if not reconstructions:
+        raise UserError("no model could be reconstructed: no image pair gave a relative pose "
+                        "with enough well-triangulated points")
+    with timer("export"):
+        for reconstruction in reconstructions:
+            _extract_colors(reconstruction, image_path)
+        write_models(reconstructions, output_path, output_type)
+    summary = summarize(reconstructions, timer, time.perf_counter() - start)
+    write_json(summary, output_path / "mapper_summary.json")
+    return dict(enumerate(reconstructions))
+
+
+def _extract_colors(reconstruction: pycolmap.Reconstruction, image_path: Path) -> None:
+    missing = [image.name for image in reconstruction.images.values()
+               if not (image_path / image.name).is_file()]
+    if missing:
+        raise UserError(f"images not found under {image_path}: {', '.join(missing[:3])}"
+                        + (" ..." if len(missing) > 3 else ""))
+    reconstruction.extract_colors_for_all_images(str(image_path))
+
+
+def summarize(reconstructions: list[pycolmap.Reconstruction], timer: StageTimer,
+              total_seconds: float) -> dict:
+    models = [{
+        "num_registered": r.num_reg_images(),
+        "num_images": r.num_images(),
+        "num_points3D": r.num_points3D(),
+        "mean_track_length": r.compute_mean_track_length(),
+        "mean_reprojection_error": r.compute_mean_reprojection_error(),
+    } for r in reconstructions]
+    return {
+        "num_models": len(reconstructions),
+        "num_registered": sum(m["num_registered"] for m in models),
+        "models": models,
+        "time_s": {**{k: round(v, 3) for k, v in timer.seconds.items()},
+                   "total": round(total_seconds, 3)},
+    }

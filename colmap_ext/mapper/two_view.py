@@ -1,0 +1,60 @@
+"""Verified two-view matches: the database's, or our own 5-point RANSAC on raw matches.
+
+Verification happens in memory; the user's database is never written.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from tqdm import tqdm
+
+import solvers
+from colmap_ext.mapper.model import Model
+from colmap_ext.mapper.options import MapperOptions
+
+Pair = tuple[int, int]
+
+
+def verified_matches(model: Model, options: MapperOptions,
+                     progress: bool = True) -> dict[Pair, np.ndarray]:
+    """(id1, id2) -> (m, 2) inlier keypoint indices, for the model's images."""
+    db = model.db
+    wanted = set(model.image_ids)
+    if db.verified_matches:
+        return {pair: m for pair, m in db.verified_matches.items()
+                if pair[0] in wanted and pair[1] in wanted
+                and len(m) >= options.two_view_min_num_inliers}
+    pairs = {pair: m for pair, m in db.raw_matches.items()
+             if pair[0] in wanted and pair[1] in wanted}
+    verified: dict[Pair, np.ndarray] = {}
+    for (id1, id2), matches in tqdm(pairs.items(), desc="verifying pairs", unit="pair",
+                                    disable=not progress, leave=False):
+        inliers = verify_pair(model, id1, id2, matches, options)
+        if inliers is not None:
+            verified[(id1, id2)] = inliers
+    return verified
+
+
+def verify_pair(model: Model, id1: int, id2: int, matches: np.ndarray,
+                options: MapperOptions) -> np.ndarray | None:
+    """The matches consistent with one calibrated relative pose, or None."""
+    if len(matches) < max(5, options.two_view_min_num_inliers):
+        return None
+    max_error = options.two_view_max_error_px / (0.5 * (model.focal(id1) + model.focal(id2)))
+    try:
+        result = solvers.relative_pose(
+            model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
+            max_error=max_error, min_num_inliers=options.two_view_min_num_inliers,
+            seed=options.seed)
+    except solvers.EstimationError:
+        return None
+    return matches[result.inlier_mask]
+
+
+def pair_graph(matches: dict[Pair, np.ndarray]) -> dict[int, dict[int, np.ndarray]]:
+    """image -> other image -> (m, 2) matches oriented from the image to the other."""
+    graph: dict[int, dict[int, np.ndarray]] = {}
+    for (id1, id2), m in matches.items():
+        graph.setdefault(id1, {})[id2] = m
+        graph.setdefault(id2, {})[id1] = m[:, ::-1]
+    return graph

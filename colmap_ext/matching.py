@@ -1,0 +1,244 @@
+"""Feature matching by pycolmap, geometric verification by our calibrated 5-point RANSAC.
+
+pycolmap matches descriptors (nearest neighbour, ratio test 0.8, which is the paper's
+1.25 inverted, and cross-check) with its own geometric verification switched off
+(`FeatureMatchingOptions.skip_geometric_verification`). Every matched pair is then
+verified with the known intrinsics: keypoints become undistorted rays through each
+image's camera, `solvers.relative_pose` (OpenGV 5-point, LO-MSAC) finds E, the relative
+pose and the inliers, and a CALIBRATED two-view geometry is written to the database,
+where COLMAP's own mappers read it. A pair that fails is written as DEGENERATE with no
+inliers, as COLMAP does.
+
+Matchers: exhaustive (every pair), sequential (each image with the next `overlap` in
+name order, plus COLMAP's quadratic overlap) and, for rings such as turntables, loop
+closure: the last images matched with the first ones, through an imported pair list.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+import time
+from collections.abc import Iterable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from tqdm import tqdm
+
+import solvers
+from colmap_ext.errors import UserError
+from colmap_ext.features import quiet_colmap_logs
+
+MATCHERS = ("auto", "exhaustive", "sequential")
+# "auto": exhaustive up to this many images (n^2 / 2 pairs stay cheap), sequential beyond.
+AUTO_EXHAUSTIVE_MAX_IMAGES = 100
+# A pair needs this many inliers to be verified (COLMAP's TwoViewGeometryOptions default).
+MIN_NUM_INLIERS = 15
+
+Config = pycolmap.TwoViewGeometryConfiguration
+
+
+@dataclass(frozen=True)
+class PairResult:
+    """One matched pair: raw matches and the inliers of our verification (0 if it failed)."""
+
+    name1: str
+    name2: str
+    num_matches: int
+    num_inliers: int
+
+
+@dataclass(frozen=True)
+class MatchingSummary:
+    matcher: str  # the one that ran ("auto" resolved)
+    pairs: list[PairResult]  # pairs verified by this call, in pair-id order
+    matching_seconds: float
+    verification_seconds: float
+
+    @property
+    def num_verified(self) -> int:
+        return sum(pair.num_inliers > 0 for pair in self.pairs)
+
+    def to_dict(self) -> dict:
+        """JSON-ready summary."""
+        return {
+            "matcher": self.matcher,
+            "num_matched_pairs": len(self.pairs),
+            "num_verified_pairs": self.num_verified,
+            "num_inlier_matches": sum(pair.num_inliers for pair in self.pairs),
+            "matching_seconds": round(self.matching_seconds, 3),
+            "verification_seconds": round(self.verification_seconds, 3),
+            "pairs": [[p.name1, p.name2, p.num_matches, p.num_inliers] for p in self.pairs],
+        }
+
+
+def match_features(database_path: str | os.PathLike, *, matcher: str = "auto",
+                   overlap: int = 10, loop_closure: bool = True, max_ratio: float = 0.8,
+                   max_error_px: float = 4.0, seed: int | None = 0,
+                   progress: bool = True) -> MatchingSummary:
+    """Match the database's features and verify every new pair with known intrinsics.
+
+    `max_error_px` is the Sampson error threshold of the verification, in pixels
+    (COLMAP's default, 4); `seed` makes the RANSAC of every pair reproducible.
+    """
+    check_options(matcher, overlap, max_ratio, max_error_px, seed)
+    database_path = Path(database_path)
+    names = image_names(database_path)
+    if matcher == "auto":
+        matcher = "exhaustive" if len(names) <= AUTO_EXHAUSTIVE_MAX_IMAGES else "sequential"
+    start = time.perf_counter()
+    options = matching_options(max_ratio)
+    with quiet_colmap_logs():
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(database_path, matching_options=options,
+                                      device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_sequential(
+                database_path, matching_options=options,
+                pairing_options=pycolmap.SequentialPairingOptions(overlap=overlap),
+                device=pycolmap.Device.cpu)
+            if loop_closure:
+                match_pairs(database_path, loop_closure_pairs(names, overlap), options)
+    matched = time.perf_counter()
+    pairs = verify_matches(database_path, max_error_px=max_error_px, seed=seed,
+                           progress=progress)
+    return MatchingSummary(matcher, pairs, matched - start, time.perf_counter() - matched)
+
+
+def check_options(matcher: str, overlap: int, max_ratio: float, max_error_px: float,
+                  seed: int | None) -> None:
+    """One-line errors for options pycolmap or the solvers would reject less clearly."""
+    if matcher not in MATCHERS:
+        raise UserError(f"unknown matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
+    if isinstance(overlap, bool) or not isinstance(overlap, int) or overlap < 1:
+        raise UserError(f"overlap must be a positive integer, got {overlap!r}")
+    if not 0 < max_ratio <= 1:
+        raise UserError(f"max_ratio must be in (0, 1], got {max_ratio!r}")
+    if not (np.isfinite(max_error_px) and max_error_px > 0):
+        raise UserError(f"max_error_px must be a positive number, got {max_error_px!r}")
+    if seed is not None and not 0 <= seed < 2**63:
+        raise UserError(f"seed must be a non-negative integer, got {seed!r}")
+
+
+def image_names(database_path: Path) -> list[str]:
+    """Names of the database's images, sorted (the order of sequential matching)."""
+    if not database_path.is_file():
+        raise UserError(f"database not found: {database_path}")
+    db = pycolmap.Database.open(database_path)
+    try:
+        names = sorted(image.name for image in db.read_all_images())
+        if not names or db.num_keypoints() == 0:
+            raise UserError(f"no features in {database_path}: extract features first")
+        return names
+    finally:
+        db.close()
+
+
+def matching_options(max_ratio: float) -> pycolmap.FeatureMatchingOptions:
+    """SIFT matching with ratio test and cross-check, leaving verification to us."""
+    options = pycolmap.FeatureMatchingOptions()
+    options.skip_geometric_verification = True
+    options.num_threads = os.cpu_count() or 1
+    options.sift.max_ratio = max_ratio
+    options.sift.cross_check = True
+    return options
+
+
+def loop_closure_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
+    """The pairs sequential matching would add if the sequence were a closed ring:
+    each of the last `overlap` images with the images after it, counted from the start."""
+    n = len(names)
+    pairs = set()
+    for i in range(n):
+        for step in range(1, overlap + 1):
+            j = i + step
+            if j >= n and j - n < i:
+                pairs.add((names[i], names[j - n]))
+    return sorted(pairs)
+
+
+def match_pairs(database_path: Path, pairs: Iterable[tuple[str, str]],
+                options: pycolmap.FeatureMatchingOptions) -> None:
+    """Match the listed pairs of image names (pairs matched before are skipped by COLMAP)."""
+    pairs = list(pairs)
+    if not pairs:
+        return
+    with tempfile.TemporaryDirectory(prefix="colmap-ext-pairs-") as scratch:
+        pairs_path = Path(scratch) / "pairs.txt"
+        pairs_path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+        pycolmap.match_image_pairs(
+            database_path, matching_options=options,
+            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_path),
+            device=pycolmap.Device.cpu)
+
+
+def verify_matches(database_path: str | os.PathLike, *, max_error_px: float = 4.0,
+                   seed: int | None = 0, progress: bool = True) -> list[PairResult]:
+    """Write a calibrated two-view geometry for every matched pair that has none yet."""
+    db = pycolmap.Database.open(database_path)
+    try:
+        cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
+        images = {image.image_id: image for image in db.read_all_images()}
+        pair_ids, all_matches = db.read_all_matches()
+        todo = [(pair_id, matches) for pair_id, matches in zip(pair_ids, all_matches)
+                if not db.exists_two_view_geometry(*pycolmap.pair_id_to_image_pair(pair_id))]
+        keypoints = {image_id: db.read_keypoints(image_id)[:, :2].astype(np.float64)
+                     for image_id in images}
+
+        def verify(item: tuple[int, np.ndarray]) -> pycolmap.TwoViewGeometry:
+            pair_id, matches = item
+            id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
+            return two_view_geometry(
+                cameras[images[id1].camera_id], cameras[images[id2].camera_id],
+                keypoints[id1], keypoints[id2], matches, max_error_px, pair_seed(seed, pair_id))
+
+        results = []
+        with ThreadPoolExecutor(os.cpu_count() or 1) as pool, pycolmap.DatabaseTransaction(db):
+            geometries = pool.map(verify, todo)
+            for (pair_id, matches), geometry in tqdm(zip(todo, geometries), total=len(todo),
+                                                     desc="verify pairs", unit="pair",
+                                                     disable=not progress):
+                id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
+                db.write_two_view_geometry(id1, id2, geometry)
+                results.append(PairResult(images[id1].name, images[id2].name, len(matches),
+                                          len(geometry.inlier_matches)))
+        return results
+    finally:
+        db.close()
+
+
+def pair_seed(seed: int | None, pair_id: int) -> int | None:
+    """A RANSAC seed per pair from the run's seed, independent of thread scheduling."""
+    if seed is None:
+        return None
+    return int(np.random.SeedSequence([seed, pair_id]).generate_state(1, np.uint64)[0])
+
+
+def two_view_geometry(camera1: pycolmap.Camera, camera2: pycolmap.Camera,
+                      keypoints1: np.ndarray, keypoints2: np.ndarray, matches: np.ndarray,
+                      max_error_px: float, seed: int | None) -> pycolmap.TwoViewGeometry:
+    """CALIBRATED geometry (E, F, cam2_from_cam1, inliers) of one pair, or DEGENERATE."""
+    if len(matches) < MIN_NUM_INLIERS:
+        return pycolmap.TwoViewGeometry(config=Config.DEGENERATE)
+    rays1 = camera1.cam_ray_from_img(keypoints1[matches[:, 0]])
+    rays2 = camera2.cam_ray_from_img(keypoints2[matches[:, 1]])
+    # Keypoints outside a camera model's valid domain (far fisheye corners) give no ray.
+    valid = np.isfinite(rays1).all(axis=1) & np.isfinite(rays2).all(axis=1)
+    if valid.sum() < MIN_NUM_INLIERS:
+        return pycolmap.TwoViewGeometry(config=Config.DEGENERATE)
+    focal = (camera1.mean_focal_length() + camera2.mean_focal_length()) / 2
+    try:
+        result = solvers.relative_pose(rays1[valid], rays2[valid], max_error=max_error_px / focal,
+                                       min_num_inliers=MIN_NUM_INLIERS, seed=seed)
+    except solvers.EstimationError:
+        return pycolmap.TwoViewGeometry(config=Config.DEGENERATE)
+    K1_inv = np.linalg.inv(camera1.calibration_matrix())
+    K2_inv = np.linalg.inv(camera2.calibration_matrix())
+    F = K2_inv.T @ result.E @ K1_inv
+    return pycolmap.TwoViewGeometry(
+        config=Config.CALIBRATED, E=result.E, F=F / np.linalg.norm(F),
+        cam2_from_cam1=result.cam2_from_cam1,
+        inlier_matches=np.ascontiguousarray(matches[valid][result.inlier_mask], dtype=np.uint32))

@@ -1,0 +1,95 @@
+"""Writing COLMAP models the way `colmap mapper` lays them out (OUTPUT/0, OUTPUT/1, ...),
+atomically: models are written to a temporary folder beside the target and renamed
+into place, so an interrupted run never leaves a half-written model where one stood."""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import pycolmap
+
+from colmap_ext.errors import UserError
+
+OUTPUT_TYPES = ("BIN", "TXT")
+
+
+def check_output_path(output_path: str | Path, overwrite: bool) -> Path:
+    """Refuse a file in the way, or an existing model without `overwrite`."""
+    output_path = Path(output_path)
+    if output_path.exists() and not output_path.is_dir():
+        raise UserError(f"output path is a file, not a folder: {output_path}")
+    if (output_path / "0").exists() and not overwrite:
+        raise UserError(f"{output_path / '0'} already holds a model; pass --overwrite to replace it")
+    try:
+        output_path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create output folder {output_path}: {exc.strerror}") from None
+    if not os.access(output_path, os.W_OK):
+        raise UserError(f"no permission to write in {output_path}")
+    return output_path
+
+
+def write_models(reconstructions: list[pycolmap.Reconstruction], output_path: str | Path,
+                 output_type: str = "BIN") -> None:
+    """Write models as output_path/0, 1, ... replacing any numbered models there."""
+    output_path = Path(output_path)
+    if output_type.upper() not in OUTPUT_TYPES:
+        raise UserError(f"--output_type must be BIN or TXT, got {output_type}")
+    try:
+        staging = Path(tempfile.mkdtemp(prefix=".colmap-ext-", dir=output_path))
+    except OSError as exc:
+        raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
+    try:
+        new = staging / "new"
+        for index, reconstruction in enumerate(reconstructions):
+            folder = new / str(index)
+            folder.mkdir(parents=True)
+            if output_type.upper() == "TXT":
+                reconstruction.write_text(folder)
+            else:
+                reconstruction.write_binary(folder)
+            if not any(folder.iterdir()):
+                raise OSError(f"nothing was written to {folder}")
+        _swap_in(new, output_path, staging / "old")
+    except OSError as exc:
+        raise UserError(f"could not write the model to {output_path}: "
+                        f"{exc.strerror or exc}; the previous model is unchanged") from None
+    finally:
+        shutil.rmtree(staging, ignore_errors=True)
+
+
+def _swap_in(new: Path, output_path: Path, old: Path) -> None:
+    """Move the numbered models in `new` into `output_path`, the previous ones out to
+    `old`; on failure, put everything back as it was."""
+    old.mkdir()
+    moved_out: list[Path] = []
+    moved_in: list[Path] = []
+    try:
+        for previous in sorted(p for p in output_path.iterdir() if p.is_dir() and p.name.isdigit()):
+            previous.rename(old / previous.name)
+            moved_out.append(previous)
+        for folder in sorted(new.iterdir(), key=lambda p: int(p.name)):
+            folder.rename(output_path / folder.name)
+            moved_in.append(output_path / folder.name)
+    except OSError:
+        for folder in moved_in:
+            shutil.rmtree(folder, ignore_errors=True)
+        for previous in moved_out:
+            (old / previous.name).rename(previous)
+        raise
+
+
+def write_json(data: dict, path: str | Path) -> None:
+    """Write JSON through a temporary file and a rename."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        tmp.write_text(json.dumps(data, indent=2) + "\n")
+        os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise UserError(f"could not write {path}: {exc.strerror or exc}") from None

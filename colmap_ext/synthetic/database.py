@@ -1,0 +1,259 @@
+"""Synthetic COLMAP databases without images: known points projected into known cameras.
+
+Keypoints are exact projections (with the camera's distortion) plus Gaussian noise,
+descriptors are SIFT-like perturbations of one random descriptor per 3D point, and
+matches are the true correspondences plus a chosen share of wrong ones. The returned
+ground truth says which 3D point every keypoint sees, so a mapper's tracks can be checked.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from colmap_ext.synthetic.scene import Scene, cast_rays
+
+DESCRIPTOR_NOISE = 0.25  # L2 norm of the per-observation perturbation of a unit descriptor
+MIN_NUM_INLIERS = 15  # COLMAP's TwoViewGeometryOptions.min_num_inliers
+NEAR = 0.05
+
+
+@dataclass
+class Observations:
+    """What one view sees: indices into points3D and their exact (noise-free) pixel positions."""
+
+    point_ids: np.ndarray
+    pixels: np.ndarray
+    depths: np.ndarray
+
+
+@dataclass
+class SyntheticDatabase:
+    """Ground truth of a written database; per-view lists are in scene order.
+
+    keypoint k of view i sees points3D[point_ids[i][k]] and projects exactly to
+    projections[i][k] (the database holds it with noise). `matches` holds what was
+    written per pair (image_id1 < image_id2), `inlier_matches` the subset that is true.
+    """
+
+    image_ids: list[int]
+    point_ids: list[np.ndarray]
+    projections: list[np.ndarray]
+    matches: dict[tuple[int, int], np.ndarray]
+    inlier_matches: dict[tuple[int, int], np.ndarray]
+
+
+def scene_points(scene: Scene, num_points: int, seed: int = 0) -> np.ndarray:
+    """Points sampled uniformly on the scene's quads, weighted by area / detail^2 (texture richness)."""
+    rng = np.random.default_rng(seed)
+    weights = np.array([q.area / q.detail**2 for q in scene.quads])
+    which = rng.choice(len(scene.quads), num_points, p=weights / weights.sum())
+    origins = np.stack([q.origin for q in scene.quads])[which]
+    edges_u = np.stack([q.edge_u for q in scene.quads])[which]
+    edges_v = np.stack([q.edge_v for q in scene.quads])[which]
+    a, b = rng.random((2, num_points, 1))
+    return origins + a * edges_u + b * edges_v
+
+
+def normalised_bounds(camera: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Bounding box of the image border unprojected to normalised coordinates: a cheap visibility pre-test."""
+    w, h = camera.width, camera.height
+    t = np.linspace(0.0, 1.0, 65)
+    border = np.concatenate([np.stack([t * w, 0 * t], 1), np.stack([t * w, h + 0 * t], 1), np.stack([0 * t, t * h], 1), np.stack([w + 0 * t, t * h], 1)])
+    xy = camera.cam_from_img(border)
+    margin = 0.01 * (xy.max(axis=0) - xy.min(axis=0))
+    return xy.min(axis=0) - margin, xy.max(axis=0) + margin
+
+
+def observe(
+    scene: Scene, image_index: int, points3D: np.ndarray, max_distance: float | None = None
+) -> Observations:
+    """Points visible in one view: in front, projecting inside the image, not hidden by a quad, within max_distance."""
+    pose = scene.cams_from_world[image_index]
+    camera = scene.camera
+    cam = pose.rotation.matrix() @ points3D.T + pose.translation[:, None]
+    lo, hi = normalised_bounds(camera)
+    x, y, z = cam
+    in_view = (z > NEAR) & (z <= (max_distance or np.inf))
+    in_view &= (x >= lo[0] * z) & (x <= hi[0] * z) & (y >= lo[1] * z) & (y <= hi[1] * z)
+    candidates = np.flatnonzero(in_view)
+    cam = cam[:, candidates].T
+    rays = cam[:, :2] / cam[:, 2:]
+    pixels = camera.img_from_cam(cam)
+    inside = np.all((pixels >= 0) & (pixels < [camera.width, camera.height]), axis=1)
+    candidates, cam, rays, pixels = candidates[inside], cam[inside], rays[inside], pixels[inside]
+    hits = cast_rays(scene, pose, rays[:, None, :], near=NEAR)
+    unoccluded = hits.depth[:, 0] >= cam[:, 2] * (1 - 1e-4) - 1e-6
+    return Observations(candidates[unoccluded], pixels[unoccluded], cam[unoccluded, 2])
+
+
+def keep_tracks(observations: list[Observations], num_points: int, min_track: int) -> list[Observations]:
+    """Drop the observations of points seen in fewer than min_track views."""
+    counts = np.bincount(np.concatenate([o.point_ids for o in observations]), minlength=num_points)
+    kept = []
+    for o in observations:
+        keep = counts[o.point_ids] >= min_track
+        kept.append(Observations(o.point_ids[keep], o.pixels[keep], o.depths[keep]))
+    return kept
+
+
+def sift_like(base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    """uint8 descriptors near unit `base` rows: perturb, clip at 0, L2-normalise, *512, clip at 255 (as SIFT)."""
+    noisy = base + rng.normal(0.0, DESCRIPTOR_NOISE / np.sqrt(base.shape[1]), base.shape)
+    noisy = np.maximum(noisy, 0.0)
+    noisy /= np.linalg.norm(noisy, axis=1, keepdims=True)
+    return np.minimum(np.round(noisy * 512), 255).astype(np.uint8)
+
+
+def affine_shapes(scales: np.ndarray, orientations: np.ndarray) -> np.ndarray:
+    """COLMAP's keypoint affine columns a11, a12, a21, a22 for a similarity (scale, orientation)."""
+    c, s = scales * np.cos(orientations), scales * np.sin(orientations)
+    return np.stack([c, -s, s, c], axis=1)
+
+
+def view_pairs(point_ids: list[np.ndarray], num_points: int) -> dict[tuple[int, int], np.ndarray]:
+    """True matches (keypoint index pairs) of every pair of views i < j that share a point.
+
+    Walks the point -> observations index once per view, so the cost grows with the
+    number of observations times the track length, not with the number of view pairs.
+    """
+    views = np.concatenate([np.full(len(p), i) for i, p in enumerate(point_ids)])
+    keypoints = np.concatenate([np.arange(len(p)) for p in point_ids])
+    points = np.concatenate(point_ids)
+    order = np.argsort(points, kind="stable")
+    starts = np.searchsorted(points[order], np.arange(num_points + 1))
+    pairs = {}
+    for i, ids in enumerate(point_ids):
+        lengths = starts[ids + 1] - starts[ids]
+        offsets = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
+        rows = order[np.repeat(starts[ids], lengths) + offsets]
+        keypoints_i = np.repeat(np.arange(len(ids)), lengths)
+        later = views[rows] > i
+        rows, keypoints_i = rows[later], keypoints_i[later]
+        by_view = np.argsort(views[rows], kind="stable")
+        others, splits = np.unique(views[rows][by_view], return_index=True)
+        for j, chunk in zip(others, np.split(by_view, splits[1:])):
+            pairs[(i, int(j))] = np.stack([keypoints_i[chunk], keypoints[rows[chunk]]], axis=1)
+    return pairs
+
+
+def add_outliers(
+    true_matches: np.ndarray, num_keypoints: tuple[int, int], outlier_ratio: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """Matches of a pair with a share `outlier_ratio` of wrong ones, one-to-one like cross-checked matching.
+
+    Wrong matches pair keypoints left unmatched in both views; when too few are left
+    (strongly overlapping views), some true matches are corrupted by rotating their
+    second keypoints. Returns (matches, inlier mask).
+    """
+    wanted = round(outlier_ratio / (1 - outlier_ratio) * len(true_matches))
+    free = [np.ones(n, bool) for n in num_keypoints]
+    for k in range(2):
+        free[k][true_matches[:, k]] = False
+    free = [np.flatnonzero(f) for f in free]
+    extra = min(wanted, len(free[0]), len(free[1]))
+    wrong = np.stack([rng.choice(free[0], extra, replace=False), rng.choice(free[1], extra, replace=False)], axis=1)
+    matches = np.concatenate([true_matches, wrong]).astype(np.uint32)
+    inliers = np.arange(len(matches)) < len(true_matches)
+    corrupt = round(outlier_ratio * len(matches)) - extra
+    if corrupt >= 2:
+        chosen = rng.choice(len(true_matches), corrupt, replace=False)
+        matches[chosen, 1] = np.roll(matches[chosen, 1], 1)
+        inliers[chosen] = False
+    return matches, inliers
+
+
+def two_view_geometry(scene: Scene, i: int, j: int, inlier_matches: np.ndarray) -> pycolmap.TwoViewGeometry:
+    """Calibrated two-view geometry of views i, j from the true poses: E = [t]x R, x2^T E x1 = 0."""
+    cam2_from_cam1 = scene.cams_from_world[j] * scene.cams_from_world[i].inverse()
+    t = cam2_from_cam1.translation
+    essential = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ cam2_from_cam1.rotation.matrix()
+    k_inv = np.linalg.inv(scene.camera.calibration_matrix())
+    geometry = pycolmap.TwoViewGeometry()
+    geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+    geometry.E = essential
+    geometry.F = k_inv.T @ essential @ k_inv
+    geometry.cam2_from_cam1 = cam2_from_cam1
+    geometry.inlier_matches = inlier_matches.astype(np.uint32)
+    return geometry
+
+
+def write_images(db: pycolmap.Database, scene: Scene) -> list[int]:
+    """Write the camera, its trivial rig, and one image with a trivial frame per view; returns image ids."""
+    camera = pycolmap.Camera(scene.camera.todict())
+    camera.has_prior_focal_length = True  # known intrinsics: COLMAP then verifies pairs as CALIBRATED
+    camera.camera_id = db.write_camera(camera)
+    rig = pycolmap.Rig()
+    rig.add_ref_sensor(camera.sensor_id)
+    rig_id = db.write_rig(rig)
+    image_ids = []
+    for name in scene.image_names:
+        image = pycolmap.Image(name=name, camera_id=camera.camera_id)
+        image.image_id = db.write_image(image)
+        frame = pycolmap.Frame()
+        frame.rig_id = rig_id
+        frame.add_data_id(image.data_id)
+        db.write_frame(frame)
+        image_ids.append(image.image_id)
+    return image_ids
+
+
+def write_synthetic_database(
+    path: str | Path,
+    scene: Scene,
+    points3D: np.ndarray,
+    *,
+    noise_px: float = 0.5,
+    outlier_ratio: float = 0.2,
+    min_track: int = 2,
+    max_distance: float | None = None,
+    seed: int = 0,
+    two_view_geometries: bool = False,
+) -> SyntheticDatabase:
+    """Write a new COLMAP database of the scene's views observing points3D; returns the ground truth.
+
+    Per view: keypoints (x, y and a SIFT-like affine shape whose scale follows depth),
+    uint8 descriptors, in shuffled order. Per pair of views sharing points: matches with
+    a share `outlier_ratio` of wrong ones. With two_view_geometries, also the verified
+    geometry (CALIBRATED, true poses, inliers = the true matches) of pairs with at least
+    15 true matches, so COLMAP's mapper can run on the database directly.
+    """
+    path = Path(path)
+    if path.exists():
+        raise FileExistsError(f"{path} exists; a synthetic database is written to a new file")
+    rng = np.random.default_rng(seed)
+    points3D = np.asarray(points3D, np.float64)
+    base = rng.exponential(1.0, (len(points3D), 128))
+    base /= np.linalg.norm(base, axis=1, keepdims=True)
+    sizes = np.exp(rng.uniform(np.log(0.01), np.log(0.05), len(points3D)))
+    orientations = rng.uniform(-np.pi, np.pi, len(points3D))
+    observations = [observe(scene, i, points3D, max_distance) for i in range(scene.num_images)]
+    observations = keep_tracks(observations, len(points3D), min_track)
+    orders = [rng.permutation(len(o.point_ids)) for o in observations]
+    observations = [Observations(o.point_ids[k], o.pixels[k], o.depths[k]) for o, k in zip(observations, orders)]
+    point_ids = [o.point_ids for o in observations]
+    size = np.array([scene.camera.width, scene.camera.height])
+    with pycolmap.Database.open(path) as db, pycolmap.DatabaseTransaction(db):
+        image_ids = write_images(db, scene)
+        for image_id, o in zip(image_ids, observations):
+            noisy = np.clip(o.pixels + rng.normal(0.0, noise_px, o.pixels.shape), 0.0, size - 1e-3)
+            scales = sizes[o.point_ids] * scene.camera.mean_focal_length() / o.depths
+            angles = orientations[o.point_ids] + rng.normal(0.0, 0.05, len(o.point_ids))
+            keypoints = np.hstack([noisy, affine_shapes(scales, angles)]).astype(np.float32)
+            db.write_keypoints(image_id, keypoints)
+            descriptors = sift_like(base[o.point_ids], rng)
+            db.write_descriptors(image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, descriptors))
+        matches, inlier_matches = {}, {}
+        for (i, j), true_matches in view_pairs(point_ids, len(points3D)).items():
+            pair = (image_ids[i], image_ids[j])
+            counts = (len(point_ids[i]), len(point_ids[j]))
+            matches[pair], inliers = add_outliers(true_matches, counts, outlier_ratio, rng)
+            inlier_matches[pair] = matches[pair][inliers]
+            db.write_matches(*pair, matches[pair])
+            if two_view_geometries and len(inlier_matches[pair]) >= MIN_NUM_INLIERS:
+                db.write_two_view_geometry(*pair, two_view_geometry(scene, i, j, inlier_matches[pair]))
+    projections = [o.pixels for o in observations]
+    return SyntheticDatabase(image_ids, point_ids, projections, matches, inlier_matches)
