@@ -231,6 +231,11 @@ def extract_features(database_path: str | os.PathLike, image_path: str | os.Path
     if mask_path is not None:
         reader.mask_path = Path(mask_path)
     with quiet_colmap_logs():
+        # Importing first gives image ids in name order; the threaded extractor alone
+        # numbers images in the order its threads finish, which varies from run to run.
+        pycolmap.Database.open(database_path).close()
+        pycolmap.import_images(database_path, image_path, camera_mode=CAMERA_MODES[camera_mode],
+                               image_names=names, options=reader)
         pycolmap.extract_features(database_path, image_path, image_names=names,
                                   camera_mode=CAMERA_MODES[camera_mode], reader_options=reader,
                                   extraction_options=extraction_options(None),

@@ -19,6 +19,7 @@ from __future__ import annotations
 import os
 import tempfile
 import time
+import zlib
 from collections.abc import Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -193,7 +194,8 @@ def verify_matches(database_path: str | os.PathLike, *, max_error_px: float = 4.
             id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
             return two_view_geometry(
                 cameras[images[id1].camera_id], cameras[images[id2].camera_id],
-                keypoints[id1], keypoints[id2], matches, max_error_px, pair_seed(seed, pair_id))
+                keypoints[id1], keypoints[id2], matches, max_error_px,
+                pair_seed(seed, images[id1].name, images[id2].name))
 
         results = []
         with ThreadPoolExecutor(os.cpu_count() or 1) as pool, pycolmap.DatabaseTransaction(db):
@@ -210,11 +212,14 @@ def verify_matches(database_path: str | os.PathLike, *, max_error_px: float = 4.
         db.close()
 
 
-def pair_seed(seed: int | None, pair_id: int) -> int | None:
-    """A RANSAC seed per pair from the run's seed, independent of thread scheduling."""
+def pair_seed(seed: int | None, name1: str, name2: str) -> int | None:
+    """A RANSAC seed per pair from the run's seed and the image names: independent of
+    thread scheduling and of image ids, which COLMAP's threaded extractor assigns in
+    varying order."""
     if seed is None:
         return None
-    return int(np.random.SeedSequence([seed, pair_id]).generate_state(1, np.uint64)[0])
+    key = zlib.crc32("\0".join(sorted((name1, name2))).encode())
+    return int(np.random.SeedSequence([seed, key]).generate_state(1, np.uint64)[0])
 
 
 def two_view_geometry(camera1: pycolmap.Camera, camera2: pycolmap.Camera,

@@ -12,7 +12,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from colmap_ext.database import read_database
+from colmap_ext.database import DatabaseContents, read_database
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.bundle_adjustment import bundle_adjust, to_reconstruction
 from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
@@ -164,13 +164,11 @@ class IncrementalMapper:
         self.num_images_at_global_ba = model.num_registered
 
 
-def reconstruct(database_path: str | Path, options: MapperOptions,
+def reconstruct(db: DatabaseContents, options: MapperOptions,
                 image_names: list[str] | None = None, timer: StageTimer | None = None,
                 progress: bool = True) -> list[pycolmap.Reconstruction]:
     """All models that the database's images give, largest first (nothing written)."""
     timer = timer or StageTimer()
-    with timer("read database"):
-        db = read_database(database_path)
     image_ids = _select_images(db, image_names)
     with timer("two-view geometry"):
         model = Model(db, image_ids)
@@ -226,26 +224,29 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
     output_path = check_output_path(output_path, overwrite)
     timer = StageTimer()
     start = time.perf_counter()
-    reconstructions = reconstruct(database_path, options, image_names, timer, progress)
+    with timer("read database"):
+        db = read_database(database_path)
+    _check_images(db, image_path)
+    reconstructions = reconstruct(db, options, image_names, timer, progress)
     if not reconstructions:
         raise UserError("no model could be reconstructed: no image pair gave a relative pose "
                         "with enough well-triangulated points")
     with timer("export"):
         for reconstruction in reconstructions:
-            _extract_colors(reconstruction, image_path)
+            reconstruction.extract_colors_for_all_images(str(image_path))
         write_models(reconstructions, output_path, output_type)
     summary = summarize(reconstructions, timer, time.perf_counter() - start)
     write_json(summary, output_path / "mapper_summary.json")
     return dict(enumerate(reconstructions))
 
 
-def _extract_colors(reconstruction: pycolmap.Reconstruction, image_path: Path) -> None:
-    missing = [image.name for image in reconstruction.images.values()
+def _check_images(db: DatabaseContents, image_path: Path) -> None:
+    """The images must be there: the model's point colours are read from them."""
+    missing = [image.name for image in db.images.values()
                if not (image_path / image.name).is_file()]
     if missing:
-        raise UserError(f"images not found under {image_path}: {', '.join(missing[:3])}"
-                        + (" ..." if len(missing) > 3 else ""))
-    reconstruction.extract_colors_for_all_images(str(image_path))
+        raise UserError(f"{len(missing)} images of the database are not under {image_path}: "
+                        f"{', '.join(missing[:3])}" + (" ..." if len(missing) > 3 else ""))
 
 
 def summarize(reconstructions: list[pycolmap.Reconstruction], timer: StageTimer,

@@ -18,12 +18,12 @@ from colmap_ext.synthetic.scene import Scene, cast_rays
 
 DESCRIPTOR_NOISE = 0.25  # L2 norm of the per-observation perturbation of a unit descriptor
 MIN_NUM_INLIERS = 15  # COLMAP's TwoViewGeometryOptions.min_num_inliers
-NEAR = 0.05
+NEAR = 0.05  # metres: nearer points are not observed
 
 
 @dataclass
 class Observations:
-    """What one view sees: indices into points3D and their exact (noise-free) pixel positions."""
+    """What one view sees: indices into points3D, their exact (noise-free) pixel positions and depths."""
 
     point_ids: np.ndarray
     pixels: np.ndarray
@@ -59,11 +59,9 @@ def scene_points(scene: Scene, num_points: int, seed: int = 0) -> np.ndarray:
 
 
 def normalised_bounds(camera: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Bounding box of the image border unprojected to normalised coordinates: a cheap visibility pre-test."""
-    w, h = camera.width, camera.height
-    t = np.linspace(0.0, 1.0, 65)
-    border = np.concatenate([np.stack([t * w, 0 * t], 1), np.stack([t * w, h + 0 * t], 1), np.stack([0 * t, t * h], 1), np.stack([w + 0 * t, t * h], 1)])
-    xy = camera.cam_from_img(border)
+    """Bounding box (plus 1 %) of the image unprojected to normalised coordinates: a cheap visibility pre-test."""
+    grid = np.meshgrid(np.linspace(0.0, camera.width, 33), np.linspace(0.0, camera.height, 33))
+    xy = camera.cam_from_img(np.stack(grid, axis=-1).reshape(-1, 2))
     margin = 0.01 * (xy.max(axis=0) - xy.min(axis=0))
     return xy.min(axis=0) - margin, xy.max(axis=0) + margin
 
@@ -77,7 +75,7 @@ def observe(
     cam = pose.rotation.matrix() @ points3D.T + pose.translation[:, None]
     lo, hi = normalised_bounds(camera)
     x, y, z = cam
-    in_view = (z > NEAR) & (z <= (max_distance or np.inf))
+    in_view = (z > NEAR) & (z <= (np.inf if max_distance is None else max_distance))
     in_view &= (x >= lo[0] * z) & (x <= hi[0] * z) & (y >= lo[1] * z) & (y <= hi[1] * z)
     candidates = np.flatnonzero(in_view)
     cam = cam[:, candidates].T

@@ -64,7 +64,7 @@ class Scene:
 
 @dataclass
 class RayHits:
-    """Nearest quad hit per ray: depth (camera z, inf on a miss), quad index (-1 on a miss), texture coords in [0, 1]."""
+    """Nearest quad hit per ray: depth (camera z; inf on a miss), quad index (-1 on a miss), texture coords in [0, 1]."""
 
     depth: np.ndarray
     quad_index: np.ndarray
@@ -102,7 +102,7 @@ def look_at(center: np.ndarray, target: np.ndarray, roll_deg: float = 0.0) -> py
 
 
 def box_quads(center: np.ndarray, size: np.ndarray, yaw_deg: float, detail: float) -> list[Quad]:
-    """The six faces of a box whose bottom is centred at `center`, turned by yaw about z."""
+    """The six faces of a box whose bottom is centred at `center`, turned by yaw about z; normals point out."""
     yaw = np.deg2rad(yaw_deg)
     ex = np.array([np.cos(yaw), np.sin(yaw), 0.0]) * size[0]
     ey = np.array([-np.sin(yaw), np.cos(yaw), 0.0]) * size[1]
@@ -235,9 +235,8 @@ def cast_rays(
     x = np.ascontiguousarray(rays[..., 0], np.float32)
     y = np.ascontiguousarray(rays[..., 1], np.float32)
     shape = x.shape
-    hits = RayHits(
-        np.full(shape, np.inf, np.float32), np.full(shape, -1, np.int32), np.zeros(shape, np.float32), np.zeros(shape, np.float32)
-    )
+    zeros = np.zeros(shape, np.float32)
+    hits = RayHits(np.full(shape, np.inf, np.float32), np.full(shape, -1, np.int32), zeros, zeros.copy())
     rotation, translation = cam_from_world.rotation.matrix(), cam_from_world.translation
     corners = scene.quad_corners @ rotation.T + translation
     lo, hi = np.array([np.nanmin(x), np.nanmin(y)]), np.array([np.nanmax(x), np.nanmax(y)])
@@ -256,16 +255,29 @@ def cast_rays(
     return hits
 
 
+def ray_dot(vector: np.ndarray, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+    """vector . (x, y, 1) for every ray, in float32."""
+    a, b, c = np.asarray(vector, np.float32)
+    return a * x + b * y + c
+
+
 def intersect_quad(
-    origin: np.ndarray, eu: np.ndarray, ev: np.ndarray, x: np.ndarray, y: np.ndarray, near: float, index: int, hits: RayHits
+    origin: np.ndarray,
+    eu: np.ndarray,
+    ev: np.ndarray,
+    x: np.ndarray,
+    y: np.ndarray,
+    near: float,
+    index: int,
+    hits: RayHits,
 ) -> None:
-    """Z-buffer one quad (camera frame) into `hits` for the rays (x, y, 1); updates hits in place."""
+    """Z-buffer one quad (camera frame: corner `origin`, edges eu, ev) into `hits` for the rays (x, y, 1)."""
     normal = np.cross(eu, ev)
     gu, gv = eu / (eu @ eu), ev / (ev @ ev)
     with np.errstate(divide="ignore", invalid="ignore"):
-        depth = np.float32(normal @ origin) / (np.float32(normal[0]) * x + np.float32(normal[1]) * y + np.float32(normal[2]))
-    u = depth * (np.float32(gu[0]) * x + np.float32(gu[1]) * y + np.float32(gu[2])) - np.float32(origin @ gu)
-    v = depth * (np.float32(gv[0]) * x + np.float32(gv[1]) * y + np.float32(gv[2])) - np.float32(origin @ gv)
+        depth = np.float32(normal @ origin) / ray_dot(normal, x, y)
+    u = depth * ray_dot(gu, x, y) - np.float32(origin @ gu)
+    v = depth * ray_dot(gv, x, y) - np.float32(origin @ gv)
     hit = (depth > near) & (depth < hits.depth) & (u >= 0) & (u <= 1) & (v >= 0) & (v <= 1)
     hits.depth[hit] = depth[hit]
     hits.quad_index[hit] = index
