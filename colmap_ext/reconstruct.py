@@ -1,0 +1,171 @@
+"""`colmap-ext reconstruct`: images and known intrinsics in, COLMAP model out.
+
+The whole method in one command, in a workspace laid out like COLMAP's automatic
+reconstructor: WS/masks/ (with --segment), WS/database.db, WS/sparse/0, 1, ...,
+and WS/reconstruct_summary.json. Every input is checked before any work starts, so
+a wrong camera parameter fails in a second, not after feature extraction.
+"""
+
+from __future__ import annotations
+
+import argparse
+import secrets
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+
+from colmap_ext.errors import UserError
+from colmap_ext.features import (
+    CAMERA_MODES,
+    DEFAULT_MIN_NUM_KEYPOINTS,
+    check_camera,
+    check_images,
+    extract_features,
+    list_images,
+)
+from colmap_ext.mapper import MapperOptions
+from colmap_ext.mapper import run as run_mapper
+from colmap_ext.masks import METHODS, make_masks
+from colmap_ext.matching import MATCHERS, match_features
+from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json
+
+DATABASE_NAME = "database.db"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--image_path", required=True)
+    parser.add_argument("--workspace_path", required=True,
+                        help="gets database.db, sparse/0, ... and reconstruct_summary.json")
+    parser.add_argument("--camera_model", required=True,
+                        help="a COLMAP camera model, e.g. PINHOLE, OPENCV")
+    parser.add_argument("--camera_params", required=True,
+                        help='the known intrinsics in COLMAP order, e.g. "fx,fy,cx,cy"')
+    parser.add_argument("--camera_mode", choices=list(CAMERA_MODES), default="single",
+                        help="one camera for all images, or one per sub-folder")
+    parser.add_argument("--mask_path", default=None,
+                        help="COLMAP masks: MASK_PATH/<image name>.png, 0 = ignore")
+    parser.add_argument("--segment", choices=METHODS, default=None,
+                        help="make masks of an object on a uniform background (turntables)")
+    parser.add_argument("--min_num_keypoints", type=int, default=DEFAULT_MIN_NUM_KEYPOINTS,
+                        help="images with fewer keypoints are extracted again with a lower "
+                             "SIFT peak threshold")
+    parser.add_argument("--matcher", choices=MATCHERS, default="auto",
+                        help="auto: exhaustive up to 100 images, sequential (with loop "
+                             "closure) beyond")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="RANSAC seed, for repeatable runs (default: random, recorded "
+                             "in the summary)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the database and models of an earlier run")
+    parser.add_argument("--output_type", choices=[*OUTPUT_TYPES, *(t.lower() for t in OUTPUT_TYPES)],
+                        default="BIN")
+
+
+def main(image_path: str, workspace_path: str, camera_model: str, camera_params: str,
+         camera_mode: str = "single", mask_path: str | None = None, segment: str | None = None,
+         min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS, matcher: str = "auto",
+         seed: int | None = None, overwrite: bool = False, output_type: str = "BIN") -> dict:
+    """Run masks (optional), features, matching and the mapper; returns the summary."""
+    start = time.perf_counter()
+    workspace = Path(workspace_path)
+    names, params = check_inputs(image_path, workspace, camera_model, camera_params,
+                                 camera_mode, mask_path, segment, min_num_keypoints, matcher,
+                                 overwrite, output_type)
+    seed = secrets.randbits(31) if seed is None else seed
+    database_path = workspace / DATABASE_NAME
+    database_path.unlink(missing_ok=True)
+    times: dict[str, float] = {}
+    summary: dict = {"inputs": {
+        "image_path": str(image_path), "camera_model": camera_model,
+        "camera_params": params, "camera_mode": camera_mode,
+        "mask_path": mask_path, "segment": segment, "min_num_keypoints": min_num_keypoints,
+        "matcher": matcher, "seed": seed, "num_images": len(names)}}
+
+    if segment is not None:
+        mask_path = str(workspace / "masks")
+        with stage(times, "masks"):
+            coverage = make_masks(image_path, mask_path, segment, names)
+        summary["masks"] = {"path": mask_path, "coverage": coverage}
+    with stage(times, "features"):
+        features = extract_features(database_path, image_path, camera_model=camera_model,
+                                    camera_params=camera_params, camera_mode=camera_mode,
+                                    mask_path=mask_path, min_num_keypoints=min_num_keypoints,
+                                                    image_names=names)
+    summary["features"] = features.to_dict()
+    matching = match_features(database_path, matcher=matcher, seed=seed)
+    times["matching"] = matching.matching_seconds
+    times["verification"] = matching.verification_seconds
+    summary["matching"] = matching.to_dict()
+    with stage(times, "mapper"):
+        models = run_mapper(database_path, image_path, workspace / "sparse",
+                            MapperOptions(seed=seed), overwrite=overwrite,
+                            output_type=output_type.upper())
+    summary["models"] = [{"path": str(workspace / "sparse" / str(index)),
+                          "num_registered": model.num_reg_images(),
+                          "num_points3D": model.num_points3D()}
+                         for index, model in models.items()]
+    times["total"] = time.perf_counter() - start
+    summary["time_s"] = {name: round(seconds, 3) for name, seconds in times.items()}
+    write_json(summary, workspace / "reconstruct_summary.json")
+    print(format_summary(summary, workspace))
+    return summary
+
+
+def check_inputs(image_path: str, workspace: Path, camera_model: str, camera_params: str,
+                 camera_mode: str, mask_path: str | None, segment: str | None,
+                 min_num_keypoints: int, matcher: str, overwrite: bool,
+                 output_type: str) -> tuple[list[str], list[float]]:
+    """Every check that can fail, before any work; returns the image names and the
+    camera parameters."""
+    if mask_path is not None and segment is not None:
+        raise UserError("give --mask_path or --segment, not both")
+    if segment is not None and segment not in METHODS:
+        raise UserError(f"unknown --segment {segment!r}; choose one of {', '.join(METHODS)}")
+    if matcher not in MATCHERS:
+        raise UserError(f"unknown --matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
+    if output_type.upper() not in OUTPUT_TYPES:
+        raise UserError(f"--output_type must be BIN or TXT, got {output_type!r}")
+    if min_num_keypoints < 0:
+        raise UserError(f"--min_num_keypoints must be >= 0, got {min_num_keypoints}")
+    params = check_camera(camera_model, camera_params)
+    names = list_images(image_path)
+    check_images(image_path, names, camera_mode, camera_model, params, mask_path)
+    if workspace.exists() and not workspace.is_dir():
+        raise UserError(f"workspace path is a file, not a folder: {workspace}")
+    if (workspace / DATABASE_NAME).exists() and not overwrite:
+        raise UserError(f"{workspace / DATABASE_NAME} exists from an earlier run; pass "
+                        "--overwrite to replace it")
+    check_output_path(workspace / "sparse", overwrite)
+    return names, params
+
+
+@contextmanager
+def stage(times: dict[str, float], name: str) -> Iterator[None]:
+    """Record the wall time of one stage."""
+    start = time.perf_counter()
+    try:
+        yield
+    finally:
+        times[name] = time.perf_counter() - start
+
+
+def format_summary(summary: dict, workspace: Path) -> str:
+    """A few lines: what each stage found, where the models are, and the time per stage."""
+    features, matching = summary["features"], summary["matching"]
+    low, median, high = features["keypoints_final_min_median_max"]
+    lines = [
+        f"Features: {features['num_images']} images, {features['num_reextracted']} extracted "
+        f"again with a lower threshold; keypoints per image {low}/{median:g}/{high} "
+        "(min/median/max)",
+        f"Matching ({matching['matcher']}): {matching['num_matched_pairs']} matched pairs, "
+        f"{matching['num_verified_pairs']} verified, {matching['num_inlier_matches']} inlier "
+        "matches",
+    ]
+    lines += [f"Model {Path(model['path']).name}: {model['num_registered']} images, "
+              f"{model['num_points3D']} points, in {model['path']}"
+              for model in summary["models"]]
+    lines.append("Time: " + ", ".join(f"{name} {seconds:.1f}s"
+                                      for name, seconds in summary["time_s"].items()))
+    lines.append(f"Summary: {workspace / 'reconstruct_summary.json'}")
+    return "\n".join(lines)
