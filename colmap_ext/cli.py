@@ -18,8 +18,12 @@ from colmap_ext.errors import UserError
 COMMANDS: dict[str, tuple[str, str]] = {
     "mapper": ("colmap_ext.mapper.cli", "Reconstruct poses and points from a COLMAP database "
                "(known intrinsics), like `colmap mapper`."),
+    "reconstruct": ("colmap_ext.reconstruct", "Images and known intrinsics in, a COLMAP "
+                    "workspace out: features, matching, verification and the mapper."),
     "evaluate": ("colmap_ext.evaluate", "Measure a model's poses against ground truth "
                  "(the paper's R_err, T_err, C_err)."),
+    "demo": ("colmap_ext.demo", "Render a synthetic ring scene, reconstruct it and "
+             "measure the result."),
 }
 
 
@@ -39,13 +43,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser()
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help()
-        return 0
-    kwargs = {k: v for k, v in vars(args).items() if k not in ("command", "_module")}
     try:
+        parser = build_parser()  # imports every subcommand: Ctrl-C may come that early
+        args = parser.parse_args(argv)
+        if args.command is None:
+            parser.print_help()
+            return 0
+        kwargs = {k: v for k, v in vars(args).items() if k not in ("command", "_module")}
+        # COLMAP's log lines go to stderr as before, but not also to files in /tmp (glog's
+        # default in pycolmap), which every run would leave behind.
+        import pycolmap  # here, not first: see the note on zlib in tests/test_bad_input.py
+
+        pycolmap.logging.logtostderr = True
         args._module.main(**kwargs)
     except UserError as exc:
         print(f"colmap-ext: error: {exc}", file=sys.stderr)

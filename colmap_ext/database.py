@@ -9,6 +9,7 @@ from __future__ import annotations
 import shutil
 import sqlite3
 import tempfile
+from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -36,7 +37,7 @@ class DatabaseContents:
     raw_matches: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
 
 
-def _check_sqlite(path: Path) -> None:
+def _check_file(path: Path) -> None:
     if not path.is_file():
         raise UserError(f"database not found: {path}")
     try:
@@ -46,23 +47,58 @@ def _check_sqlite(path: Path) -> None:
         raise UserError(f"cannot read database {path}: {exc.strerror}") from None
     if header != b"SQLite format 3\x00":
         raise UserError(f"not an SQLite database: {path}")
+
+
+def _copy_database(path: Path, copy: Path) -> None:
+    """Copy the file and its write-ahead log, if any (changes not yet folded into the file).
+
+    Even a read-only SQLite connection leaves `-wal`/`-shm` files beside a WAL-mode
+    database (as COLMAP writes them), so the user's file is only ever read as bytes."""
     try:
-        with sqlite3.connect(f"file:{path}?mode=ro", uri=True) as conn:
+        shutil.copyfile(path, copy)
+        wal = path.with_name(f"{path.name}-wal")
+        if wal.is_file():
+            shutil.copyfile(wal, copy.with_name(f"{copy.name}-wal"))
+    except OSError as exc:
+        raise UserError(f"cannot copy database {path} to a temporary folder: "
+                        f"{exc.strerror or exc}") from None
+
+
+# COLMAP's camera model ids -> number of parameters.
+_NUM_PARAMS = {int(model_id): len(pycolmap.Camera.create_from_model_id(0, model_id, 1.0, 1, 1).params)
+               for name, model_id in pycolmap.CameraModelId.__members__.items() if name != "INVALID"}
+
+
+def _check_tables(copy: Path, path: Path) -> None:
+    """The COLMAP tables are there and every camera is one pycolmap can read."""
+    try:
+        with closing(sqlite3.connect(copy)) as conn:
             tables = {row[0] for row in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            cameras = conn.execute("SELECT camera_id, model, params FROM cameras").fetchall() \
+                if "cameras" in tables else []
     except sqlite3.Error as exc:
         raise UserError(f"cannot read database {path}: {exc}") from None
     missing = {"cameras", "images", "keypoints", "descriptors", "matches"} - tables
     if missing:
         raise UserError(f"not a COLMAP database (no table {', '.join(sorted(missing))}): {path}")
+    for camera_id, model_id, params in cameras:
+        if model_id not in _NUM_PARAMS:
+            raise UserError(f"camera {camera_id} in {path} has model id {model_id}, which is no "
+                            "COLMAP camera model")
+        num_params = len(params or b"") / 8
+        if num_params != _NUM_PARAMS[model_id]:
+            raise UserError(f"camera {camera_id} in {path} has {num_params:g} params; its model "
+                            f"{pycolmap.CameraModelId(model_id).name} takes {_NUM_PARAMS[model_id]}")
 
 
 def read_database(path: str | Path) -> DatabaseContents:
     """Cameras, images with keypoints and descriptors, and matches, from a copy of `path`."""
     path = Path(path)
-    _check_sqlite(path)
+    _check_file(path)
     with tempfile.TemporaryDirectory(prefix="colmap-ext-db-") as tmp:
         copy = Path(tmp) / "database.db"
-        shutil.copyfile(path, copy)
+        _copy_database(path, copy)
+        _check_tables(copy, path)
         try:
             db = pycolmap.Database.open(copy)
         except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on bad schemas

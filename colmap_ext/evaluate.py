@@ -13,6 +13,7 @@ C_err_aligned replaces the first camera's frame and spread by the best similarit
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import os
@@ -73,6 +74,9 @@ def evaluate(reconstruction: pycolmap.Reconstruction, ground_truth: GroundTruth)
     if len(registered) < 2:
         raise UserError(f"only {len(registered)} registered image(s) match the {len(names)} "
                         "ground-truth images by name; at least 2 are needed")
+    unmatched = sum(image.has_pose for image in reconstruction.images.values()) - len(matches)
+    if unmatched:
+        logger.warning("%d registered model image(s) have no ground truth and are ignored", unmatched)
     errors = pose_errors(
         [ground_truth.poses[name] for name in registered],
         [matches[name].cam_from_world() for name in registered],
@@ -98,7 +102,7 @@ def match_images(reconstruction: pycolmap.Reconstruction, names: list[str]) -> d
     """Ground-truth name -> registered model image, by exact name, else by a basename unique on both sides.
 
     The basename fallback lets `sub/a.png` in a model meet `a.png` in a ground truth.
-    Model images without ground truth are ignored, with a warning saying how many.
+    Model images without ground truth are ignored (`evaluate` warns how many).
     """
     images = [image for image in reconstruction.images.values() if image.has_pose]
     by_name = {image.name: image for image in images}
@@ -116,9 +120,6 @@ def match_images(reconstruction: pycolmap.Reconstruction, names: list[str]) -> d
     for base, name in gt_left.items():
         if base in model_left:
             matches[name] = by_name[model_left[base]]
-    unmatched = len(images) - len(matches)
-    if unmatched:
-        logger.warning("%d registered model image(s) have no ground truth and are ignored", unmatched)
     return matches
 
 
@@ -210,5 +211,6 @@ def write_json(report: dict, path: Path) -> None:
         temporary.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
         os.replace(temporary, path)
     except OSError as exc:
-        temporary.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):  # e.g. the folder is a file: no temporary to remove
+            temporary.unlink(missing_ok=True)
         raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None

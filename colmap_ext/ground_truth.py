@@ -171,7 +171,7 @@ def read_model(path: Path) -> pycolmap.Reconstruction:
         raise UserError(f"model not found: {path} is not a folder")
     try:
         return pycolmap.Reconstruction(path)
-    except (ValueError, RuntimeError) as exc:
+    except Exception as exc:  # ValueError, RuntimeError, IndexError... from truncated files
         raise UserError(f"{path}: not a readable COLMAP model ({exc})") from None
 
 

@@ -149,16 +149,13 @@ def matching_options(max_ratio: float) -> pycolmap.FeatureMatchingOptions:
 
 
 def loop_closure_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
-    """The pairs sequential matching would add if the sequence were a closed ring:
-    each of the last `overlap` images with the images after it, counted from the start."""
+    """The pairs sequential matching would add if the sequence were a closed ring: each
+    of the last `overlap` images with the next ones counted from the start, except pairs
+    that are within `overlap` of each other anyway (short sequences)."""
     n = len(names)
-    pairs = set()
-    for i in range(n):
-        for step in range(1, overlap + 1):
-            j = i + step
-            if j >= n and j - n < i:
-                pairs.add((names[i], names[j - n]))
-    return sorted(pairs)
+    return [(names[i], names[i + step - n])
+            for i in range(n) for step in range(1, overlap + 1)
+            if i + step >= n and n - step > overlap]
 
 
 def match_pairs(database_path: Path, pairs: Iterable[tuple[str, str]],

@@ -28,8 +28,10 @@ def check_output_path(output_path: str | Path, overwrite: bool) -> Path:
         output_path.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"cannot create output folder {output_path}: {exc.strerror}") from None
-    if not os.access(output_path, os.W_OK):
-        raise UserError(f"no permission to write in {output_path}")
+    try:  # before any work; os.access says yes to root even where no one may write
+        os.rmdir(tempfile.mkdtemp(prefix=".colmap-ext-", dir=output_path))
+    except OSError as exc:
+        raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
     return output_path
 
 

@@ -91,7 +91,7 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
         features = extract_features(database_path, image_path, camera_model=camera_model,
                                     camera_params=camera_params, camera_mode=camera_mode,
                                     mask_path=mask_path, min_num_keypoints=min_num_keypoints,
-                                                    image_names=names)
+                                    image_names=names)
     summary["features"] = features.to_dict()
     matching = match_features(database_path, matcher=matcher, seed=seed)
     times["matching"] = matching.matching_seconds

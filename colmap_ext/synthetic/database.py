@@ -106,6 +106,22 @@ def sift_like(base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     return np.minimum(np.round(noisy * 512), 255).astype(np.uint8)
 
 
+@dataclass
+class PointAppearance:
+    """What a 3D point looks like to a feature extractor: unit descriptor, physical size (m), orientation."""
+
+    descriptors: np.ndarray
+    sizes: np.ndarray
+    orientations: np.ndarray
+
+    @classmethod
+    def random(cls, num_points: int, rng: np.random.Generator) -> PointAppearance:
+        descriptors = rng.exponential(1.0, (num_points, 128))
+        descriptors /= np.linalg.norm(descriptors, axis=1, keepdims=True)
+        sizes = np.exp(rng.uniform(np.log(0.01), np.log(0.05), num_points))
+        return cls(descriptors, sizes, rng.uniform(-np.pi, np.pi, num_points))
+
+
 def affine_shapes(scales: np.ndarray, orientations: np.ndarray) -> np.ndarray:
     """COLMAP's keypoint affine columns a11, a12, a21, a22 for a similarity (scale, orientation)."""
     c, s = scales * np.cos(orientations), scales * np.sin(orientations)
@@ -199,6 +215,25 @@ def write_images(db: pycolmap.Database, scene: Scene) -> list[int]:
     return image_ids
 
 
+def write_features(
+    db: pycolmap.Database,
+    image_id: int,
+    seen: Observations,
+    appearance: PointAppearance,
+    camera: pycolmap.Camera,
+    noise_px: float,
+    rng: np.random.Generator,
+) -> None:
+    """Keypoints (noisy x, y; affine shape whose scale follows depth) and SIFT-like descriptors of one view."""
+    size = np.array([camera.width, camera.height])
+    noisy = np.clip(seen.pixels + rng.normal(0.0, noise_px, seen.pixels.shape), 0.0, size - 1e-3)
+    scales = appearance.sizes[seen.point_ids] * camera.mean_focal_length() / seen.depths
+    angles = appearance.orientations[seen.point_ids] + rng.normal(0.0, 0.05, len(seen.point_ids))
+    db.write_keypoints(image_id, np.hstack([noisy, affine_shapes(scales, angles)]).astype(np.float32))
+    descriptors = sift_like(appearance.descriptors[seen.point_ids], rng)
+    db.write_descriptors(image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, descriptors))
+
+
 def write_synthetic_database(
     path: str | Path,
     scene: Scene,
@@ -213,8 +248,8 @@ def write_synthetic_database(
 ) -> SyntheticDatabase:
     """Write a new COLMAP database of the scene's views observing points3D; returns the ground truth.
 
-    Per view: keypoints (x, y and a SIFT-like affine shape whose scale follows depth),
-    uint8 descriptors, in shuffled order. Per pair of views sharing points: matches with
+    Per view: keypoints and descriptors (see write_features) of the points it sees, in
+    shuffled order; points seen by fewer than min_track views are left out. Per pair of views sharing points: matches with
     a share `outlier_ratio` of wrong ones. With two_view_geometries, also the verified
     geometry (CALIBRATED, true poses, inliers = the true matches) of pairs with at least
     15 true matches, so COLMAP's mapper can run on the database directly.
@@ -222,28 +257,20 @@ def write_synthetic_database(
     path = Path(path)
     if path.exists():
         raise FileExistsError(f"{path} exists; a synthetic database is written to a new file")
+    if not 0.0 <= outlier_ratio < 1.0:
+        raise ValueError(f"outlier_ratio must be in [0, 1), got {outlier_ratio}")
     rng = np.random.default_rng(seed)
     points3D = np.asarray(points3D, np.float64)
-    base = rng.exponential(1.0, (len(points3D), 128))
-    base /= np.linalg.norm(base, axis=1, keepdims=True)
-    sizes = np.exp(rng.uniform(np.log(0.01), np.log(0.05), len(points3D)))
-    orientations = rng.uniform(-np.pi, np.pi, len(points3D))
+    appearance = PointAppearance.random(len(points3D), rng)
     observations = [observe(scene, i, points3D, max_distance) for i in range(scene.num_images)]
     observations = keep_tracks(observations, len(points3D), min_track)
     orders = [rng.permutation(len(o.point_ids)) for o in observations]
     observations = [Observations(o.point_ids[k], o.pixels[k], o.depths[k]) for o, k in zip(observations, orders)]
     point_ids = [o.point_ids for o in observations]
-    size = np.array([scene.camera.width, scene.camera.height])
     with pycolmap.Database.open(path) as db, pycolmap.DatabaseTransaction(db):
         image_ids = write_images(db, scene)
-        for image_id, o in zip(image_ids, observations):
-            noisy = np.clip(o.pixels + rng.normal(0.0, noise_px, o.pixels.shape), 0.0, size - 1e-3)
-            scales = sizes[o.point_ids] * scene.camera.mean_focal_length() / o.depths
-            angles = orientations[o.point_ids] + rng.normal(0.0, 0.05, len(o.point_ids))
-            keypoints = np.hstack([noisy, affine_shapes(scales, angles)]).astype(np.float32)
-            db.write_keypoints(image_id, keypoints)
-            descriptors = sift_like(base[o.point_ids], rng)
-            db.write_descriptors(image_id, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT, descriptors))
+        for image_id, seen in zip(image_ids, observations):
+            write_features(db, image_id, seen, appearance, scene.camera, noise_px, rng)
         matches, inlier_matches = {}, {}
         for (i, j), true_matches in view_pairs(point_ids, len(points3D)).items():
             pair = (image_ids[i], image_ids[j])

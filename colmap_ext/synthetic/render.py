@@ -19,6 +19,7 @@ from colmap_ext.synthetic.scene import Quad, Scene, cast_rays, image_rays
 BACKGROUND = 0.5
 LIGHT = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
 MAX_TEXTURE_SIZE = 4096
+SHIFT = 4  # fractional bits of cv2's fixed-point drawing coordinates
 
 
 def noise_octaves(shape: tuple[int, int], cells: tuple[int, ...], rng: np.random.Generator) -> np.ndarray:
@@ -31,36 +32,38 @@ def noise_octaves(shape: tuple[int, int], cells: tuple[int, ...], rng: np.random
     return np.clip(total / len(cells), 0.0, 1.0)
 
 
+def fixed_point(values: np.ndarray | list[float]) -> np.ndarray:
+    """Coordinates in cv2's fixed-point drawing format (SHIFT fractional bits), for subpixel shapes."""
+    return np.round(np.asarray(values) * (1 << SHIFT)).astype(np.int32)
+
+
+def polygon(kind: int, size: float, centre: np.ndarray, angles: np.ndarray, aspect: float) -> np.ndarray:
+    """Corners of a rotated rectangle (kind 2) or of a random triangle (kind 3) of diameter ~size."""
+    if kind == 2:
+        local = np.array([[-1, -aspect], [1, -aspect], [1, aspect], [-1, aspect]]) * size / 2
+        c, s = np.cos(angles[0]), np.sin(angles[0])
+        return local @ np.array([[c, s], [-s, c]]) + centre
+    return centre + size / 2 * np.stack([np.cos(angles), np.sin(angles)], axis=1)
+
+
 def draw_shapes(canvas: np.ndarray, rng: np.random.Generator, min_size: float, max_size: float) -> None:
-    """Paint overlapping discs, ellipses, rotated rectangles and triangles, largest first, about twice over."""
+    """Paint discs, ellipses, rotated rectangles and triangles (sizes log-uniform), largest first, about twice over."""
     height, width = canvas.shape
     mean_square = (max_size**2 - min_size**2) / (2 * np.log(max_size / min_size))
     count = int(2 * height * width / mean_square)
     sizes = np.sort(np.exp(rng.uniform(np.log(min_size), np.log(max_size), count)))[::-1]
     centres = rng.uniform([0, 0], [width, height], (count, 2))
-    grays = rng.integers(0, 256, count)
-    kinds = rng.integers(0, 4, count)
+    greys = rng.integers(0, 256, count).tolist()
+    kinds = rng.integers(0, 4, count).tolist()
     angles = rng.uniform(0, 2 * np.pi, (count, 3))
     aspects = rng.uniform(0.3, 1.0, count)
-    shift = 4
-    for size, centre, gray, kind, angle, aspect in zip(sizes, centres, grays, kinds, angles, aspects):
-        colour = int(gray)
-        if kind == 0:
-            centre_px = tuple(int(c * 16) for c in centre)
-            cv2.circle(canvas, centre_px, int(size * 8), colour, -1, cv2.LINE_AA, shift)
-            continue
-        if kind == 1:
-            radii = (int(size * 8), int(size * 8 * aspect))
-            centre_px = tuple(int(c * 16) for c in centre)
-            cv2.ellipse(canvas, centre_px, radii, np.rad2deg(angle[0]), 0, 360, colour, -1, cv2.LINE_AA, shift)
-            continue
-        if kind == 2:
-            local = np.array([[-1, -aspect], [1, -aspect], [1, aspect], [-1, aspect]]) * size / 2
-            c, s = np.cos(angle[0]), np.sin(angle[0])
-            points = local @ np.array([[c, s], [-s, c]]) + centre
+    for size, centre, grey, kind, angle, aspect in zip(sizes, centres, greys, kinds, angles, aspects):
+        if kind < 2:
+            axes = fixed_point([size / 2, size / 2 * (aspect if kind == 1 else 1.0)])
+            centre_fp = fixed_point(centre)
+            cv2.ellipse(canvas, centre_fp.tolist(), axes.tolist(), np.rad2deg(angle[0]), 0, 360, grey, -1, cv2.LINE_AA, SHIFT)
         else:
-            points = centre + size / 2 * np.stack([np.cos(angle), np.sin(angle)], axis=1)
-        cv2.fillConvexPoly(canvas, np.round(points * 16).astype(np.int32), colour, cv2.LINE_AA, shift)
+            cv2.fillConvexPoly(canvas, fixed_point(polygon(kind, size, centre, angle, aspect)), grey, cv2.LINE_AA, SHIFT)
 
 
 def make_texture(quad: Quad, rng: np.random.Generator) -> np.ndarray:
@@ -104,7 +107,8 @@ def pixel_grid(camera: pycolmap.Camera, supersample: int) -> np.ndarray:
 
 
 class Renderer:
-    """Renders the views of one scene; textures are made on first use, from (seed, quad index)."""
+    """Renders the views of one scene. Random streams: (seed, 0, quad index) for a quad's texture,
+    made on first use; (seed, 1, image index) for a view's sensor noise."""
 
     def __init__(self, scene: Scene, seed: int = 0, supersample: int = 2) -> None:
         self.scene = scene
@@ -115,8 +119,9 @@ class Renderer:
         self.textures: dict[int, np.ndarray] = {}
 
     def texture(self, index: int) -> np.ndarray:
+        """Texture of quad `index`, the same whichever views are rendered first."""
         if index not in self.textures:
-            rng = np.random.default_rng([self.seed, index])
+            rng = np.random.default_rng([self.seed, 0, index])
             self.textures[index] = make_texture(self.scene.quads[index], rng)
         return self.textures[index]
 
@@ -140,7 +145,7 @@ class Renderer:
         """8-bit image: box-filtered supersamples plus a little sensor noise (deterministic per view)."""
         camera, s = self.scene.camera, self.supersample
         image = self.radiance(image_index).reshape(camera.height, s, camera.width, s).mean(axis=(1, 3))
-        rng = np.random.default_rng([self.seed, len(self.scene.quads), image_index])
+        rng = np.random.default_rng([self.seed, 1, image_index])
         image = image * 255 + rng.normal(0.0, 1.0, image.shape)
         return np.clip(np.round(image), 0, 255).astype(np.uint8)
 

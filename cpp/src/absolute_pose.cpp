@@ -12,6 +12,60 @@ using opengv::bearingVectors_t;
 using opengv::points_t;
 using opengv::absolute_pose::CentralAbsoluteAdapter;
 
+// Least squares over the inliers' reprojection errors (see refinement.hpp) in normalized
+// image units, in the rotation (exp(w) R) and the translation (t + u): 6 degrees of freedom.
+class ReprojectionRefinement {
+ public:
+  using Vec = Eigen::Matrix<double, 6, 1>;
+  using Mat = Eigen::Matrix<double, 6, 6>;
+
+  ReprojectionRefinement(const points_t& points, const std::vector<Eigen::Vector2d>& xy,
+                         const std::vector<int>& inliers, Pose* cam_from_world)
+      : points_(points), xy_(xy), inliers_(inliers), pose_(*cam_from_world) {}
+
+  double linearize(Mat* JtJ, Vec* Jtr) const {
+    JtJ->setZero();
+    Jtr->setZero();
+    double cost = 0.0;
+    for (int i : inliers_) {
+      const Eigen::Vector3d RX = pose_.R * points_[i];
+      const Eigen::Vector3d x = RX + pose_.t;
+      const double inv_z = 1.0 / x.z();
+      const Eigen::Vector2d r = x.head<2>() * inv_z - xy_[i];
+      Eigen::Matrix<double, 2, 3> dproject;  // d(x/z, y/z)/dx
+      dproject << inv_z, 0, -x.x() * inv_z * inv_z, 0, inv_z, -x.y() * inv_z * inv_z;
+      Eigen::Matrix<double, 2, 6> J;
+      J << dproject * -skew(RX), dproject;  // dx/dw = -[R X]x, dx/du = I
+      *JtJ += J.transpose() * J;
+      *Jtr += J.transpose() * r;
+      cost += r.squaredNorm();
+    }
+    return cost;
+  }
+
+  double cost(const Vec& delta) const {
+    const Pose pose = moved(delta);
+    double cost = 0.0;
+    for (int i : inliers_) {
+      const Eigen::Vector3d x = pose.R * points_[i] + pose.t;
+      cost += (x.head<2>() / x.z() - xy_[i]).squaredNorm();
+    }
+    return cost;
+  }
+
+  void commit(const Vec& delta) { pose_ = moved(delta); }
+
+ private:
+  Pose moved(const Vec& delta) const {
+    return {rotate_by(delta.head<3>(), pose_.R), pose_.t + delta.tail<3>()};
+  }
+
+  const points_t& points_;
+  const std::vector<Eigen::Vector2d>& xy_;
+  const std::vector<int>& inliers_;
+  Pose& pose_;
+};
+
 class AbsolutePoseEstimator {
  public:
   using Model = Pose;
@@ -44,20 +98,8 @@ class AbsolutePoseEstimator {
 
   // Levenberg-Marquardt on the inliers' reprojection errors (6 degrees of freedom).
   bool refine(const std::vector<int>& inliers, Model* cam_from_world) const {
-    Pose& pose = *cam_from_world;
-    const auto moved = [&](const Eigen::Matrix<double, 6, 1>& delta) {
-      return Pose{rotate_by(delta.head<3>(), pose.R), pose.t + delta.tail<3>()};
-    };
-    const auto residuals = [&](const Eigen::Matrix<double, 6, 1>& delta, Eigen::VectorXd* r) {
-      const Pose candidate = moved(delta);
-      r->resize(2 * inliers.size());
-      for (size_t k = 0; k < inliers.size(); ++k) {
-        const Eigen::Vector3d x = candidate.R * points_[inliers[k]] + candidate.t;
-        r->segment<2>(2 * k) = x.head<2>() / x.z() - xy_[inliers[k]];
-      }
-    };
-    const auto commit = [&](const Eigen::Matrix<double, 6, 1>& delta) { pose = moved(delta); };
-    return levenberg_marquardt<6>(residuals, commit);
+    ReprojectionRefinement problem(points_, xy_, inliers, cam_from_world);
+    return levenberg_marquardt<6>(problem);
   }
 
  private:

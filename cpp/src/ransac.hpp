@@ -5,7 +5,7 @@
 //   static constexpr int kSampleSize;
 //   size_t num_data() const;
 //   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const;
-//   double squared_error(const Model& model, size_t i) const;   // +inf for impossible
+//   double squared_error(const Model& model, size_t i) const;   // +inf or NaN: never fits
 //   bool refine(const std::vector<int>& inliers, Model* model) const;  // least squares on inliers
 #pragma once
 
@@ -47,26 +47,33 @@ inline int required_iterations(int num_inliers, int num_data, int sample_size, d
                                                : static_cast<int>(std::ceil(n));
 }
 
-// MSAC score (lower is better) and the inliers of one model. Scoring stops early once
-// the score passes `bound`: such a model cannot become the best one.
+// MSAC score of one model (lower is better). Scoring stops early once the score passes
+// `bound`: such a model cannot become the best one.
 template <typename Estimator>
 double score_model(const Estimator& estimator, const typename Estimator::Model& model,
-                   double max_sq_error, std::vector<int>* inliers,
-                   double bound = std::numeric_limits<double>::infinity()) {
-  inliers->clear();
+                   double max_sq_error, double bound = std::numeric_limits<double>::infinity()) {
   double score = 0.0;
   const size_t n = estimator.num_data();
   for (size_t i = 0; i < n; ++i) {
     const double e = estimator.squared_error(model, i);
     if (e < max_sq_error) {
       score += e;
-      inliers->push_back(static_cast<int>(i));
     } else {
       score += max_sq_error;
       if (score > bound) return score;
     }
   }
   return score;
+}
+
+template <typename Estimator>
+void find_inliers(const Estimator& estimator, const typename Estimator::Model& model,
+                  double max_sq_error, std::vector<int>* inliers) {
+  inliers->clear();
+  const size_t n = estimator.num_data();
+  for (size_t i = 0; i < n; ++i) {
+    if (estimator.squared_error(model, i) < max_sq_error) inliers->push_back(static_cast<int>(i));
+  }
 }
 
 template <typename Estimator>
@@ -82,7 +89,7 @@ RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
   std::mt19937_64 rng(options.seed);
   std::vector<int> indices(num_data);
   std::iota(indices.begin(), indices.end(), 0);
-  std::vector<int> sample(kSampleSize), inliers, best_inliers;
+  std::vector<int> sample(kSampleSize), best_inliers;
   std::vector<Model> models;
   double best_score = std::numeric_limits<double>::infinity();
   int max_iterations = options.max_iterations;
@@ -98,20 +105,20 @@ RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
     models.clear();
     estimator.minimal_solve(sample, &models);
     for (const Model& model : models) {
-      const double score = score_model(estimator, model, max_sq_error, &inliers, best_score);
+      const double score = score_model(estimator, model, max_sq_error, best_score);
       if (score >= best_score) continue;
       best_score = score;
       result.model = model;
-      best_inliers.swap(inliers);
+      find_inliers(estimator, model, max_sq_error, &best_inliers);
       // Local optimisation: a least-squares fit on the inliers often finds more of them.
       Model refined = result.model;
       if (static_cast<int>(best_inliers.size()) > kSampleSize &&
           estimator.refine(best_inliers, &refined)) {
-        const double refined_score = score_model(estimator, refined, max_sq_error, &inliers);
+        const double refined_score = score_model(estimator, refined, max_sq_error, best_score);
         if (refined_score < best_score) {
           best_score = refined_score;
           result.model = refined;
-          best_inliers.swap(inliers);
+          find_inliers(estimator, refined, max_sq_error, &best_inliers);
         }
       }
       const int needed = required_iterations(static_cast<int>(best_inliers.size()), num_data,
@@ -126,11 +133,11 @@ RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
   for (int round = 0; round < 2; ++round) {
     Model refined = result.model;
     if (!estimator.refine(best_inliers, &refined)) break;
-    const double refined_score = score_model(estimator, refined, max_sq_error, &inliers);
+    const double refined_score = score_model(estimator, refined, max_sq_error);
     if (refined_score > best_score) break;
     best_score = refined_score;
     result.model = refined;
-    best_inliers.swap(inliers);
+    find_inliers(estimator, refined, max_sq_error, &best_inliers);
   }
   result.success = true;
   result.num_inliers = static_cast<int>(best_inliers.size());

@@ -1,53 +1,45 @@
 // A small Levenberg-Marquardt for the few-parameter refinements of RANSAC models.
 //
-// The model is moved by a local update `delta` (e.g. a rotation vector and a
-// translation step); `residuals(delta, &r)` evaluates the residuals at the moved
-// model and `commit(delta)` moves it for good. The Jacobian is by central
-// differences: D is 5 or 6 here, so 2D residual passes per iteration are cheap next
-// to the sampling loop, and no model needs hand-derived derivatives.
+// The model is moved by a local update `delta` of D parameters (e.g. a rotation vector
+// and a translation step). A problem provides, with analytic derivatives:
+//   double linearize(Mat* JtJ, Vec* Jtr) const;  // at the current model: J^T J, J^T r and
+//                                                // the cost, the sum of squared residuals
+//   double cost(const Vec& delta) const;         // the cost at the model moved by delta
+//   void commit(const Vec& delta);               // moves the model for good
+// J^T J and J^T r are accumulated point by point, so no residual vector or Jacobian
+// matrix is ever stored.
 #pragma once
 
 #include <Eigen/Dense>
+#include <algorithm>
+#include <cmath>
 
 namespace colmap_ext {
 
-template <int D, typename Residuals, typename Commit>
-bool levenberg_marquardt(const Residuals& residuals, const Commit& commit,
-                         int max_iterations = 20) {
+template <int D, typename Problem>
+bool levenberg_marquardt(Problem& problem, int max_iterations = 20) {
   using Vec = Eigen::Matrix<double, D, 1>;
   using Mat = Eigen::Matrix<double, D, D>;
-  constexpr double kStep = 1e-6;
-  Eigen::VectorXd r, r_plus, r_minus, r_new;
-  residuals(Vec::Zero(), &r);
-  double cost = r.squaredNorm();
+  Mat H;
+  Vec g;
+  double cost = problem.linearize(&H, &g);
   if (!std::isfinite(cost)) return false;
   double lambda = 1e-4;
-  Eigen::MatrixXd J(r.size(), D);
   for (int iteration = 0; iteration < max_iterations; ++iteration) {
-    for (int j = 0; j < D; ++j) {
-      const Vec h = Vec::Unit(j) * kStep;
-      residuals(h, &r_plus);
-      residuals(-h, &r_minus);
-      J.col(j) = (r_plus - r_minus) / (2 * kStep);
-    }
-    const Mat H = J.transpose() * J;
-    const Vec g = J.transpose() * r;
     bool improved = false;
     for (int attempt = 0; attempt < 10 && !improved; ++attempt) {
       Mat damped = H;
       damped.diagonal() += lambda * H.diagonal().cwiseMax(1e-12);
       const Vec step = damped.ldlt().solve(-g);
-      if (!step.allFinite()) break;
-      residuals(step, &r_new);
-      const double new_cost = r_new.squaredNorm();
+      if (!step.allFinite()) return true;
+      const double new_cost = problem.cost(step);
       if (std::isfinite(new_cost) && new_cost < cost) {
-        commit(step);
+        problem.commit(step);
         const bool converged = cost - new_cost < 1e-12 * cost || step.norm() < 1e-12;
-        cost = new_cost;
-        r.swap(r_new);
         lambda = std::max(lambda * 0.1, 1e-12);
         improved = true;
         if (converged) return true;
+        cost = problem.linearize(&H, &g);
       } else {
         lambda *= 10;
       }

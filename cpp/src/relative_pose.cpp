@@ -69,15 +69,107 @@ bool twisted_pair_consistent(const Eigen::Matrix3d& E, const bearingVectors_t& r
   return !(positive && negative);
 }
 
-// Depths of a ray pair's midpoint triangulation along each ray.
-Eigen::Vector2d midpoint_depths(const Pose& cam2_from_cam1, const Eigen::Vector3d& f1,
-                                const Eigen::Vector3d& f2) {
+// Whether the midpoint triangulation of a ray pair lies in front of both cameras: the
+// depths (l1, l2) minimising |l1 f1 - (l2 g + c2)| in camera 1's frame (g = R^T f2, c2 the
+// centre of camera 2), by Cramer's rule on the 2x2 normal equations.
+bool in_front(const Pose& cam2_from_cam1, const Eigen::Vector3d& f1, const Eigen::Vector3d& f2) {
   const Eigen::Vector3d c2 = -cam2_from_cam1.R.transpose() * cam2_from_cam1.t;
   const Eigen::Vector3d g = cam2_from_cam1.R.transpose() * f2;
-  Eigen::Matrix<double, 3, 2> A;
-  A << f1, -g;
-  return (A.transpose() * A).ldlt().solve(A.transpose() * c2);
+  const double ff = f1.squaredNorm(), gg = g.squaredNorm(), fg = f1.dot(g);
+  const double fc = f1.dot(c2), gc = g.dot(c2);
+  const double det = ff * gg - fg * fg;  // >= 0; 0 for parallel rays
+  return det > 0 && gg * fc - fg * gc > 0 && fg * fc - ff * gc > 0;
 }
+
+// The Sampson error of one pair is c / sqrt(d): c = x2^T E x1 and d = |(E x1)_xy|^2 +
+// |(E^T x2)_xy|^2, for normalized image points x1, x2 (z = 1).
+struct SampsonTerms {
+  Eigen::Vector3d Ex1, Etx2;
+  double c, d;
+};
+
+inline SampsonTerms sampson_terms(const Eigen::Matrix3d& E, const Eigen::Vector2d& x1,
+                                  const Eigen::Vector2d& x2) {
+  SampsonTerms s;
+  s.Ex1 = E.leftCols<2>() * x1 + E.col(2);
+  s.Etx2 = E.topRows<2>().transpose() * x2 + E.row(2).transpose();
+  s.c = x2.dot(s.Ex1.head<2>()) + s.Ex1.z();
+  s.d = s.Ex1.head<2>().squaredNorm() + s.Etx2.head<2>().squaredNorm();
+  return s;
+}
+
+// Least squares over the inliers' Sampson errors (see refinement.hpp), in the rotation
+// (exp(w) R) and the direction of translation (t + B u, renormalized, with B a basis
+// of the plane orthogonal to t): 5 degrees of freedom.
+class SampsonRefinement {
+ public:
+  using Vec = Eigen::Matrix<double, 5, 1>;
+  using Mat = Eigen::Matrix<double, 5, 5>;
+
+  SampsonRefinement(const std::vector<Eigen::Vector2d>& x1, const std::vector<Eigen::Vector2d>& x2,
+                    const std::vector<int>& inliers, Pose* cam2_from_cam1)
+      : x1_(x1), x2_(x2), inliers_(inliers), pose_(*cam2_from_cam1) {
+    update_tangent();
+  }
+
+  double linearize(Mat* JtJ, Vec* Jtr) const {
+    const Eigen::Matrix3d E = essential_from_pose(pose_);
+    Eigen::Matrix3d dE[5];  // derivatives of E = [t]x R along the 5 parameters
+    for (int k = 0; k < 3; ++k) dE[k] = skew(pose_.t) * skew(Eigen::Vector3d::Unit(k)) * pose_.R;
+    for (int k = 0; k < 2; ++k) dE[3 + k] = skew(tangent_.col(k)) * pose_.R;
+    JtJ->setZero();
+    Jtr->setZero();
+    double cost = 0.0;
+    for (int i : inliers_) {
+      const Eigen::Vector3d x1 = x1_[i].homogeneous(), x2 = x2_[i].homogeneous();
+      const SampsonTerms s = sampson_terms(E, x1_[i], x2_[i]);
+      const double inv_sqrt_d = 1.0 / std::sqrt(s.d);
+      const double r = s.c * inv_sqrt_d;
+      // dr/dE = x2 x1^T / sqrt(d) - (r / d) (dd/dE) / 2
+      Eigen::Matrix3d G = inv_sqrt_d * x2 * x1.transpose();
+      const double k = r * inv_sqrt_d * inv_sqrt_d;
+      G.topRows<2>() -= k * s.Ex1.head<2>() * x1.transpose();
+      G.leftCols<2>() -= k * x2 * s.Etx2.head<2>().transpose();
+      Vec J;
+      for (int p = 0; p < 5; ++p) J[p] = G.cwiseProduct(dE[p]).sum();
+      *JtJ += J * J.transpose();
+      *Jtr += r * J;
+      cost += r * r;
+    }
+    return cost;
+  }
+
+  double cost(const Vec& delta) const {
+    const Eigen::Matrix3d E = essential_from_pose(moved(delta));
+    double cost = 0.0;
+    for (int i : inliers_) {
+      const SampsonTerms s = sampson_terms(E, x1_[i], x2_[i]);
+      cost += s.c * s.c / s.d;
+    }
+    return cost;
+  }
+
+  void commit(const Vec& delta) {
+    pose_ = moved(delta);
+    update_tangent();
+  }
+
+ private:
+  Pose moved(const Vec& delta) const {
+    return {rotate_by(delta.head<3>(), pose_.R), (pose_.t + tangent_ * delta.tail<2>()).normalized()};
+  }
+
+  void update_tangent() {
+    const Eigen::Vector3d a = pose_.t.unitOrthogonal();
+    tangent_ << a, pose_.t.cross(a);
+  }
+
+  const std::vector<Eigen::Vector2d>& x1_;
+  const std::vector<Eigen::Vector2d>& x2_;
+  const std::vector<int>& inliers_;
+  Pose& pose_;
+  Eigen::Matrix<double, 3, 2> tangent_;
+};
 
 // E with a pose: during sampling only E is known; refine() decomposes it once.
 struct RelativeModel {
@@ -118,46 +210,19 @@ class RelativePoseEstimator {
   // Sampson error: first-order geometric error in normalized image units. NaN (never an
   // inlier) for rays without normalized coordinates.
   double squared_error(const Model& model, size_t i) const {
-    const Eigen::Matrix3d& E = model.E;
-    const double x1 = x1_[i].x(), y1 = x1_[i].y(), x2 = x2_[i].x(), y2 = x2_[i].y();
-    const double Ex1_0 = E(0, 0) * x1 + E(0, 1) * y1 + E(0, 2);
-    const double Ex1_1 = E(1, 0) * x1 + E(1, 1) * y1 + E(1, 2);
-    const double Ex1_2 = E(2, 0) * x1 + E(2, 1) * y1 + E(2, 2);
-    const double Etx2_0 = E(0, 0) * x2 + E(1, 0) * y2 + E(2, 0);
-    const double Etx2_1 = E(0, 1) * x2 + E(1, 1) * y2 + E(2, 1);
-    const double c = x2 * Ex1_0 + y2 * Ex1_1 + Ex1_2;
-    return c * c / (Ex1_0 * Ex1_0 + Ex1_1 * Ex1_1 + Etx2_0 * Etx2_0 + Etx2_1 * Etx2_1);
+    const SampsonTerms s = sampson_terms(model.E, x1_[i], x2_[i]);
+    return s.c * s.c / s.d;
   }
 
-  // Levenberg-Marquardt on the inliers' Sampson errors over rotation and the
-  // direction of translation (5 degrees of freedom).
+  // Levenberg-Marquardt on the inliers' Sampson errors (5 degrees of freedom).
   bool refine(const std::vector<int>& inliers, Model* model) const {
     if (!model->has_pose) {
       model->pose = decompose_essential(model->E, rays1_, rays2_, inliers);
       model->has_pose = true;
     }
-    Pose& pose = model->pose;
-    Eigen::Matrix<double, 3, 2> tangent;  // basis of the translation's tangent plane
-    const auto moved = [&](const Eigen::Matrix<double, 5, 1>& delta) {
-      return Pose{rotate_by(delta.head<3>(), pose.R), (pose.t + tangent * delta.tail<2>()).normalized()};
-    };
-    const auto update_tangent = [&]() {
-      Eigen::JacobiSVD<Eigen::Matrix<double, 3, 1>> svd(pose.t, Eigen::ComputeFullU);
-      tangent = svd.matrixU().rightCols<2>();
-    };
-    update_tangent();
-    const auto residuals = [&](const Eigen::Matrix<double, 5, 1>& delta, Eigen::VectorXd* r) {
-      const Model candidate{essential_from_pose(moved(delta)), {}, false};
-      r->resize(inliers.size());
-      for (size_t k = 0; k < inliers.size(); ++k)
-        (*r)[k] = std::sqrt(squared_error(candidate, inliers[k]));
-    };
-    const auto commit = [&](const Eigen::Matrix<double, 5, 1>& delta) {
-      pose = moved(delta);
-      update_tangent();
-    };
-    if (!levenberg_marquardt<5>(residuals, commit)) return false;
-    model->E = essential_from_pose(pose);
+    SampsonRefinement problem(x1_, x2_, inliers, &model->pose);
+    if (!levenberg_marquardt<5>(problem)) return false;
+    model->E = essential_from_pose(model->pose);
     return true;
   }
 
@@ -196,8 +261,7 @@ Pose decompose_essential(const Eigen::Matrix3d& E, const bearingVectors_t& rays1
   for (const Pose& candidate : candidates) {
     int count = 0;
     for (int i : indices) {
-      const Eigen::Vector2d d = midpoint_depths(candidate, rays1[i], rays2[i]);
-      count += d.x() > 0 && d.y() > 0;
+      count += in_front(candidate, rays1[i], rays2[i]);
     }
     if (count > best_count) {
       best_count = count;
@@ -218,12 +282,13 @@ RelativePoseResult estimate_relative_pose(const bearingVectors_t& rays1,
   result.ransac.num_inliers = found.num_inliers;
   result.ransac.num_iterations = found.num_iterations;
   if (!found.success) return result;
-  if (!found.model.has_pose) {
-    std::vector<int> inliers;
-    for (size_t i = 0; i < rays1.size(); ++i)
-      if (result.ransac.inlier_mask[i]) inliers.push_back(static_cast<int>(i));
-    found.model.pose = decompose_essential(found.model.E, rays1, rays2, inliers);
-  }
+  // The cheirality check on the final inliers: refinement cannot see the sign of t
+  // (E is the same for t and -t), so a sign chosen on an earlier, smaller inlier set
+  // must not survive.
+  std::vector<int> inliers;
+  for (size_t i = 0; i < rays1.size(); ++i)
+    if (result.ransac.inlier_mask[i]) inliers.push_back(static_cast<int>(i));
+  found.model.pose = decompose_essential(found.model.E, rays1, rays2, inliers);
   result.ransac.model = found.model.pose;
   result.E = essential_from_pose(found.model.pose);
   return result;

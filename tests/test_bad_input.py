@@ -1,0 +1,912 @@
+"""Bad input through the real command line: every case runs `python -m colmap_ext` in a
+subprocess and checks the exit code, one clear line on stderr, no traceback, and that
+every input (and any previous model) is byte for byte what it was, with no stray files
+(e.g. SQLite `-wal`/`-shm` files beside a database) and no temporary folders left.
+
+To add a case, write a builder under `@case(...)`: it makes the inputs in `env.inputs`
+(hashed before and after the run) and returns the command's arguments.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import re
+import resource
+import shutil
+import signal
+import sqlite3
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from collections.abc import Callable
+from contextlib import closing
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+CLI = [sys.executable, "-m", "colmap_ext"]
+NOBODY = 65534
+IS_ROOT = os.geteuid() == 0
+PROGRESS_LINE = re.compile(r"\d+%\|")  # tqdm's bars, e.g. "registered:  50%|#####     | 3/6"
+TEMP_PREFIXES = (".colmap-ext-", "colmap-ext-")
+
+
+# ---------------------------------------------------------------- shared inputs
+
+
+def write_png(path: Path, size: tuple[int, int] = (8, 8)) -> None:
+    import cv2  # the mapper reads point colours from the images
+
+    path.parent.mkdir(parents=True, exist_ok=True)
+    assert cv2.imwrite(str(path), np.zeros(size[::-1], np.uint8))
+
+
+def sha256(path: Path) -> str:
+    return hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+class Assets:
+    """Inputs built once per session; cases copy what they use into their own folder."""
+
+    def __init__(self, root: Path) -> None:
+        self.root = root
+
+    def _synthetic(self, name: str, num_images: int, num_points: int) -> tuple[Path, Path, list[str]]:
+        from colmap_ext.synthetic.database import scene_points, write_synthetic_database
+        from colmap_ext.synthetic.scene import ring_scene
+
+        folder = self.root / name
+        scene = ring_scene(num_images=num_images, seed=3)
+        folder.mkdir()
+        write_synthetic_database(folder / "database.db", scene,
+                                 scene_points(scene, num_points, seed=3), noise_px=0.5,
+                                 outlier_ratio=0.2, seed=3)
+        for image_name in scene.image_names:
+            write_png(folder / "images" / image_name)
+        self.scenes = getattr(self, "scenes", {})
+        self.scenes[name] = scene
+        return folder / "database.db", folder / "images", scene.image_names
+
+    @cached_property
+    def small(self) -> tuple[Path, Path, list[str]]:
+        """6 views, 500 points: maps in under a second."""
+        return self._synthetic("small", 6, 500)
+
+    @cached_property
+    def big(self) -> tuple[Path, Path, list[str]]:
+        """12 views, 1500 points: maps in about 4 s, time to press Ctrl-C."""
+        return self._synthetic("big", 12, 1500)
+
+    @cached_property
+    def model(self) -> Path:
+        """OUT/ of a mapper run on `small`: OUT/0 and OUT/mapper_summary.json."""
+        from colmap_ext.mapper import MapperOptions, run
+
+        database, images, _ = self.small
+        out = self.root / "model"
+        run(database, images, out, MapperOptions(seed=0), progress=False)
+        return out
+
+    @cached_property
+    def ground_truth(self) -> Path:
+        """Middlebury *_par.txt of the small scene."""
+        from colmap_ext.synthetic.render import write_par_file
+
+        self.small  # noqa: B018 (makes the scene)
+        path = self.root / "small_par.txt"
+        write_par_file(self.scenes["small"], path)
+        return path
+
+    @cached_property
+    def colmap38(self) -> tuple[Path, Path, str]:
+        """A database written by COLMAP 3.8 (Debian's `colmap`), or by hand in its schema."""
+        folder = self.root / "colmap38"
+        folder.mkdir()
+        version = shutil.which("colmap") and subprocess.run(
+            ["colmap", "-h"], capture_output=True, text=True).stdout
+        if version and "COLMAP 3.8" in version:
+            return (*make_colmap38_database(folder), "written by COLMAP 3.8 (colmap feature_extractor)")
+        database, images, _ = self.small
+        shutil.copytree(images, folder / "images")
+        make_38_schema_database(database, folder / "database.db")
+        return folder / "database.db", folder / "images", "hand-built in COLMAP 3.8's schema"
+
+
+def make_colmap38_database(folder: Path) -> tuple[Path, Path]:
+    """3 rendered 320x240 views, `colmap feature_extractor` + `exhaustive_matcher` (3.8)."""
+    import pycolmap
+
+    from colmap_ext.synthetic.render import render_images
+    from colmap_ext.synthetic.scene import Scene, ring_scene
+
+    camera = pycolmap.Camera(camera_id=1, model="PINHOLE", width=320, height=240,
+                             params=[300.0, 300.0, 160.0, 120.0])
+    ring = ring_scene(num_images=36, seed=3, camera=camera)
+    scene = Scene(ring.camera, ring.cams_from_world[:3], ring.image_names[:3], ring.quads)
+    render_images(scene, folder / "images", seed=0, supersample=1)
+    database = folder / "database.db"
+    env = {**os.environ, "QT_QPA_PLATFORM": "offscreen"}
+    for command in (["feature_extractor", "--image_path", str(folder / "images"),
+                     "--ImageReader.camera_model", "PINHOLE", "--ImageReader.single_camera", "1",
+                     "--ImageReader.camera_params", "300,300,160,120",
+                     "--SiftExtraction.use_gpu", "0"],
+                    ["exhaustive_matcher", "--SiftMatching.use_gpu", "0"]):
+        subprocess.run(["colmap", *command, "--database_path", str(database)], check=True,
+                       capture_output=True, env=env, timeout=120)
+    return database, folder / "images"
+
+
+# COLMAP 3.8's schema (from a database its feature_extractor wrote): no rigs, frames,
+# pose_priors; images hold pose priors; descriptors have no type column.
+SCHEMA_38 = """
+CREATE TABLE cameras (camera_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, model INTEGER NOT NULL,
+  width INTEGER NOT NULL, height INTEGER NOT NULL, params BLOB, prior_focal_length INTEGER NOT NULL);
+CREATE TABLE images (image_id INTEGER PRIMARY KEY AUTOINCREMENT NOT NULL, name TEXT NOT NULL UNIQUE,
+  camera_id INTEGER NOT NULL, prior_qw REAL, prior_qx REAL, prior_qy REAL, prior_qz REAL,
+  prior_tx REAL, prior_ty REAL, prior_tz REAL,
+  CONSTRAINT image_id_check CHECK(image_id >= 0 and image_id < 2147483647),
+  FOREIGN KEY(camera_id) REFERENCES cameras(camera_id));
+CREATE UNIQUE INDEX index_name ON images(name);
+CREATE TABLE keypoints (image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL,
+  cols INTEGER NOT NULL, data BLOB, FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE);
+CREATE TABLE descriptors (image_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL,
+  cols INTEGER NOT NULL, data BLOB, FOREIGN KEY(image_id) REFERENCES images(image_id) ON DELETE CASCADE);
+CREATE TABLE matches (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL,
+  cols INTEGER NOT NULL, data BLOB);
+CREATE TABLE two_view_geometries (pair_id INTEGER PRIMARY KEY NOT NULL, rows INTEGER NOT NULL,
+  cols INTEGER NOT NULL, data BLOB, config INTEGER NOT NULL, F BLOB, E BLOB, H BLOB, qvec BLOB, tvec BLOB);
+"""
+
+
+def make_38_schema_database(source: Path, target: Path) -> None:
+    """The features and matches of a 4.x database in COLMAP 3.8's schema."""
+    with closing(sqlite3.connect(target)) as conn:
+        conn.executescript(SCHEMA_38)
+        conn.execute("ATTACH DATABASE ? AS src", (f"file:{source}?mode=ro",))
+        conn.executescript("""
+            INSERT INTO cameras SELECT camera_id, model, width, height, params, prior_focal_length FROM src.cameras;
+            INSERT INTO images (image_id, name, camera_id) SELECT image_id, name, camera_id FROM src.images;
+            INSERT INTO keypoints SELECT image_id, rows, cols, data FROM src.keypoints;
+            INSERT INTO descriptors SELECT image_id, rows, cols, data FROM src.descriptors;
+            INSERT INTO matches SELECT pair_id, rows, cols, data FROM src.matches;
+            PRAGMA user_version = 3800;
+        """)
+        conn.commit()
+        conn.execute("DETACH DATABASE src")
+        conn.execute("PRAGMA journal_mode = WAL")  # as COLMAP leaves its databases
+
+
+@pytest.fixture(scope="session")
+def assets(tmp_path_factory) -> Assets:
+    return Assets(tmp_path_factory.mktemp("bad_input_assets"))
+
+
+@pytest.fixture(scope="session")
+def commands() -> set[str]:
+    """The subcommands the CLI has now (others are being written)."""
+    result = subprocess.run([*CLI, "--help"], capture_output=True, text=True, timeout=60)
+    return set(re.findall(r"^    (\w+)\s", result.stdout, re.MULTILINE))
+
+
+@pytest.fixture(scope="session")
+def unprivileged() -> str | None:
+    """Why permission cases cannot run here, or None. As root, chmod does not bite, so those
+    cases run the CLI as the user `nobody` on a folder it owns."""
+    if not IS_ROOT:
+        return None
+    home = tempfile.mkdtemp(prefix="bad-input-probe-")
+    try:
+        os.chmod(home, 0o755)
+        os.chown(home, NOBODY, NOBODY)
+        result = subprocess.run([*CLI, "--version"], capture_output=True, text=True, timeout=60,
+                                user=NOBODY, group=NOBODY, extra_groups=[], cwd=home,
+                                env={**os.environ, "HOME": home, "MPLCONFIGDIR": home})
+        problem = result.stderr.strip().splitlines()[-1:] if result.returncode else None
+    except OSError as exc:
+        problem = [str(exc)]
+    finally:
+        shutil.rmtree(home, ignore_errors=True)
+    if problem is not None:
+        return ("running as root, where permissions do not bite, and the user nobody cannot "
+                f"run this Python ({' '.join(problem)}); the /proc and /sys cases stand in")
+    return None
+
+
+# ---------------------------------------------------------------- the case table
+
+
+@dataclass
+class Env:
+    """One case's folder: inputs (hashed before and after), out, and a TMPDIR of its own."""
+
+    root: Path
+    assets: Assets
+    protected: list[Path] = field(default_factory=list)  # also hashed, e.g. a previous model
+    notes: list[str] = field(default_factory=list)
+
+    def __post_init__(self) -> None:
+        for folder in (self.inputs, self.tmp, self.home):
+            folder.mkdir(parents=True, exist_ok=True)
+
+    inputs = property(lambda self: self.root / "in")
+    out = property(lambda self: self.root / "out")
+    tmp = property(lambda self: self.root / "tmp")
+    home = property(lambda self: self.root / "home")
+
+    def copy(self, source: Path, name: str | None = None) -> Path:
+        target = self.inputs / (name or source.name)
+        (shutil.copytree if source.is_dir() else shutil.copyfile)(source, target)
+        return target
+
+    def small_db(self) -> Path:
+        return self.copy(self.assets.small[0])
+
+    def images(self) -> Path:
+        return self.copy(self.assets.small[1])
+
+    def previous_model(self) -> Path:
+        """OUT holding a model from an earlier run, protected like an input."""
+        shutil.copytree(self.assets.model, self.out)
+        self.protected.append(self.out)
+        return self.out
+
+    def mapper(self, database: Path | str, images: Path | str | None = None,
+               out: Path | str | None = None, *extra: str) -> list[str]:
+        return ["mapper", "--database_path", str(database),
+                "--image_path", str(images if images is not None else self.images()),
+                "--output_path", str(out if out is not None else self.out), *extra]
+
+    def evaluate(self, model: Path | str | None = None, truth: Path | str | None = None,
+                 *extra: str) -> list[str]:
+        if model is None:
+            model = self.copy(self.assets.model / "0", "model")
+        if truth is None:
+            truth = self.copy(self.assets.ground_truth)
+        return ["evaluate", "--model_path", str(model), "--ground_truth", str(truth), *extra]
+
+
+@dataclass(frozen=True)
+class Case:
+    id: str
+    build: Callable[[Env], list[str]]  # makes the inputs, returns the arguments
+    message: str  # a fragment of the last stderr line (of stdout when code is 0)
+    code: int = 1
+    command: str = "mapper"  # skipped while the CLI has no such subcommand
+    unprivileged: bool = False  # relies on file permissions: run as nobody when root
+    run: Callable[[Env, list[str]], subprocess.CompletedProcess] | None = None  # custom runner
+    after: Callable[[Env, subprocess.CompletedProcess], None] | None = None  # more checks
+
+
+CASES: list[Case] = []
+
+
+def case(id: str, message: str, code: int = 1, **options) -> Callable:
+    def register(build: Callable[[Env], list[str]]) -> Callable:
+        CASES.append(Case(id, build, message, code, **options))
+        return build
+    return register
+
+
+def edit_database(path: Path, *statements: tuple) -> Path:
+    """Run SQL on a crafted database (our own copy, not a user's)."""
+    with closing(sqlite3.connect(path)) as conn:
+        for statement in statements:
+            conn.execute(*statement) if isinstance(statement, tuple) else conn.execute(statement)
+        conn.commit()
+    return path
+
+
+# ---- paths
+
+
+@case("db_missing", "database not found")
+def _(env):
+    return env.mapper(env.inputs / "nope.db")
+
+
+@case("db_is_a_folder", "database not found")
+def _(env):
+    (env.inputs / "database.db").mkdir()
+    return env.mapper(env.inputs / "database.db")
+
+
+@case("db_unreadable_chmod", "cannot read database", unprivileged=True)
+def _(env):
+    database = env.small_db()
+    database.chmod(0)
+    return env.mapper(database)
+
+
+@case("db_unopenable_even_for_root", "cannot read database")
+def _(env):
+    # A regular file that no one can open for reading (write-only, EINVAL), root or not.
+    return env.mapper("/proc/self/clear_refs")
+
+
+@case("db_unreadable_even_for_root", "cannot read database")
+def _(env):
+    # A regular file that opens but whose offset 0 cannot be read (EIO), root or not.
+    return env.mapper("/proc/self/mem")
+
+
+@case("images_missing", "image path not found")
+def _(env):
+    return env.mapper(env.small_db(), env.inputs / "no_such_folder")
+
+
+@case("images_folder_unreadable", "images of the database are not under", unprivileged=True)
+def _(env):
+    images = env.images()
+    images.chmod(0)
+    return env.mapper(env.small_db(), images)
+
+
+@case("images_not_in_folder", "images of the database are not under")
+def _(env):
+    images = env.images()
+    for path in sorted(images.iterdir())[:2]:
+        path.unlink()
+    return env.mapper(env.small_db(), images)
+
+
+@case("image_list_missing", "cannot read image list")
+def _(env):
+    return env.mapper(env.small_db(), None, None, "--image_list_path", str(env.inputs / "nope.txt"))
+
+
+@case("image_list_empty", "is empty")
+def _(env):
+    (env.inputs / "list.txt").write_text("\n\n")
+    return env.mapper(env.small_db(), None, None, "--image_list_path", str(env.inputs / "list.txt"))
+
+
+@case("image_list_unknown_names", "images in the image list are not in the database")
+def _(env):
+    (env.inputs / "list.txt").write_text("ring0000.png\nnot_an_image.png\n")
+    return env.mapper(env.small_db(), None, None, "--image_list_path", str(env.inputs / "list.txt"))
+
+
+# ---- what is in the database
+
+
+@case("db_not_sqlite", "not an SQLite database")
+def _(env):
+    (env.inputs / "database.db").write_text("cameras, images, keypoints\n")
+    return env.mapper(env.inputs / "database.db")
+
+
+@case("db_zero_bytes", "not an SQLite database")
+def _(env):
+    (env.inputs / "database.db").touch()
+    return env.mapper(env.inputs / "database.db")
+
+
+@case("db_truncated", "cannot read database")
+def _(env):
+    data = env.assets.small[0].read_bytes()
+    (env.inputs / "database.db").write_bytes(data[:100] + b"\x00" * 4096)
+    return env.mapper(env.inputs / "database.db")
+
+
+@case("db_sqlite_without_tables", "not a COLMAP database (no table")
+def _(env):
+    database = edit_database(env.inputs / "database.db", "PRAGMA user_version = 1")
+    assert database.stat().st_size > 0
+    return env.mapper(database)
+
+
+@case("db_colmap_without_images", "the database has no images")
+def _(env):
+    import pycolmap
+
+    pycolmap.Database.open(env.inputs / "database.db").close()
+    return env.mapper(env.inputs / "database.db")
+
+
+@case("db_images_without_keypoints", "the database has no keypoints")
+def _(env):
+    database = edit_database(env.small_db(), "DELETE FROM keypoints", "DELETE FROM descriptors",
+                             "DELETE FROM matches", "DELETE FROM two_view_geometries")
+    return env.mapper(database)
+
+
+@case("db_keypoints_without_matches", "the database has no matches")
+def _(env):
+    database = edit_database(env.small_db(), "DELETE FROM matches", "DELETE FROM two_view_geometries")
+    return env.mapper(database)
+
+
+@case("db_matches_beyond_keypoints", "refer to keypoints that do not exist")
+def _(env):
+    database = env.small_db()
+    with closing(sqlite3.connect(database)) as conn:
+        pair_id, rows, data = conn.execute("SELECT pair_id, rows, data FROM matches LIMIT 1").fetchone()
+        matches = np.frombuffer(data, np.uint32).reshape(rows, 2).copy()
+        matches[0, 1] = 10**6
+        conn.execute("UPDATE matches SET data = ? WHERE pair_id = ?", (matches.tobytes(), pair_id))
+        conn.commit()
+    return env.mapper(database)
+
+
+@case("db_image_without_camera", "which is not in the database")
+def _(env):
+    return env.mapper(edit_database(env.small_db(), "DELETE FROM cameras"))
+
+
+@case("db_unknown_camera_model", "model id 99, which is no COLMAP camera model")
+def _(env):
+    return env.mapper(edit_database(env.small_db(), "UPDATE cameras SET model = 99"))
+
+
+@case("db_wrong_number_of_params", "has 3 params; its model OPENCV takes 8")
+def _(env):
+    params = np.array([600.0, 600.0, 318.0])  # OPENCV has 8
+    return env.mapper(edit_database(env.small_db(), ("UPDATE cameras SET params = ?", (params.tobytes(),))))
+
+
+@case("db_nan_params", "has no valid parameters")
+def _(env):
+    params = np.full(8, np.nan)
+    return env.mapper(edit_database(env.small_db(), ("UPDATE cameras SET params = ?", (params.tobytes(),))))
+
+
+@case("db_pycolmap4_positive_control", "Registered 6 images in 1 model", code=0)
+def _(env):
+    return env.mapper(env.small_db(), None, None, "--seed", "0")
+
+
+def _colmap38_after(env, result):
+    env.notes.append(f"the COLMAP 3.8 database was {env.assets.colmap38[2]}")
+
+
+@case("db_colmap38", "Registered", code=0, after=_colmap38_after)
+def _(env):
+    database, images, _ = env.assets.colmap38
+    return env.mapper(env.copy(database), env.copy(images), None, "--seed", "0")
+
+
+# ---- images
+
+
+def _warns_about(name: str) -> Callable:
+    def after(env, result):
+        assert name in result.stderr, f"no word on stderr about the unreadable {name}"
+    return after
+
+
+@case("image_zero_bytes", "Registered 6 images", code=0, after=_warns_about("ring0001.png"))
+def _(env):
+    images = env.images()
+    (images / "ring0001.png").write_bytes(b"")
+    return env.mapper(env.small_db(), images, None, "--seed", "0")
+
+
+@case("image_corrupt", "Registered 6 images", code=0, after=_warns_about("ring0002.png"))
+def _(env):
+    images = env.images()
+    (images / "ring0002.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 50)
+    return env.mapper(env.small_db(), images, None, "--seed", "0")
+
+
+# ---- options
+
+
+@case("bad_output_type", "invalid choice", code=2)
+def _(env):
+    return env.mapper(env.small_db(), None, None, "--output_type", "PLY")
+
+
+@case("init_image_not_in_database", "init")
+def _(env):
+    return env.mapper(env.small_db(), None, None, "--Mapper.init_image_id1", "99",
+                      "--Mapper.init_image_id2", "1")
+
+
+# ---- output
+
+
+@case("output_holds_a_model", "already holds a model; pass --overwrite")
+def _(env):
+    return env.mapper(env.small_db(), None, env.previous_model())
+
+
+def _replaced(env, result):
+    import pycolmap
+
+    out = env.out
+    assert sorted(p.name for p in out.iterdir()) == ["0", "mapper_summary.json"], \
+        "a stale model or a temporary folder was left beside the new model"
+    assert pycolmap.Reconstruction(out / "0").num_reg_images() == 6
+    assert sha256(out / "0" / "images.bin") != sha256(env.assets.model / "0" / "images.bin")
+
+
+@case("output_overwrite_replaces", "Registered 6 images", code=0, after=_replaced)
+def _(env):
+    shutil.copytree(env.assets.model, env.out)
+    shutil.copytree(env.out / "0", env.out / "1")  # a second model of the earlier run
+    return env.mapper(env.small_db(), None, None, "--seed", "5", "--overwrite")
+
+
+@case("output_is_a_file", "output path is a file")
+def _(env):
+    (env.inputs / "out").write_text("not a folder")
+    return env.mapper(env.small_db(), None, env.inputs / "out")
+
+
+@case("output_below_a_file", "cannot create output folder")
+def _(env):
+    (env.inputs / "file").write_text("not a folder")
+    return env.mapper(env.small_db(), None, env.inputs / "file" / "out")
+
+
+@case("output_under_proc", "cannot create output folder")
+def _(env):
+    return env.mapper(env.small_db(), None, "/proc/colmap-ext-out")
+
+
+def _before_mapping(env, result):
+    assert "registered:" not in result.stderr, "the output was checked only after mapping"
+
+
+@case("output_not_writable", "cannot write in", unprivileged=True, after=_before_mapping)
+def _(env):
+    env.out.mkdir()
+    env.out.chmod(0o555)
+    return env.mapper(env.small_db())
+
+
+@case("output_not_creatable_even_for_root", "cannot create output folder")
+def _(env):
+    return env.mapper(env.small_db(), None, "/sys/colmap-ext-out")  # EPERM, root or not
+
+
+@case("output_not_writable_even_for_root", "cannot write in /sys/kernel", after=_before_mapping)
+def _(env):
+    return env.mapper(env.small_db(), None, "/sys/kernel")  # a folder no one can add to
+
+
+def _no_space(limit: int) -> Callable[[], None]:
+    def preexec() -> None:
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)  # writes past the limit fail with EFBIG
+        resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return preexec
+
+
+def _run_disk_full_from_start(env, args):
+    return run_cli(env, args, preexec_fn=_no_space(16 * 1024))
+
+
+@case("disk_full_from_start", "File too large", run=_run_disk_full_from_start)
+def _(env):
+    env.previous_model()
+    return env.mapper(env.small_db(), None, None, "--overwrite")
+
+
+# The database is read (copied to TMPDIR) with room to spare; then the disk is full.
+DISK_FULL_AFTER_READ = """
+import resource, signal, sys
+import colmap_ext.mapper.pipeline as pipeline
+from colmap_ext.cli import main
+limit = int(sys.argv.pop(1))
+read_database = pipeline.read_database
+def read_then_fill_disk(*args, **kwargs):
+    contents = read_database(*args, **kwargs)
+    signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+    return contents
+pipeline.read_database = read_then_fill_disk
+sys.argv[0] = "colmap-ext"
+sys.exit(main())
+"""
+
+
+def _run_disk_full_at_write(env, args):
+    return run_cli(env, args, cli=[sys.executable, "-c", DISK_FULL_AFTER_READ, "4096"])
+
+
+@case("disk_full_while_writing_model", "the previous model is unchanged", run=_run_disk_full_at_write)
+def _(env):
+    env.previous_model()
+    return env.mapper(env.small_db(), None, None, "--overwrite", "--seed", "0")
+
+
+def _run_interrupted(env, args):
+    """Start mapping, press Ctrl-C once the images are being registered."""
+    process = subprocess.Popen([*CLI, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                               text=True, env=child_env(env), cwd=env.root)
+    stderr: list[str] = []
+    reader = threading.Thread(target=lambda: stderr.extend(iter(lambda: process.stderr.read(1), "")))
+    reader.start()
+    deadline = time.monotonic() + 60
+    while "registered:" not in "".join(stderr) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    time.sleep(0.5)
+    assert process.poll() is None, "the mapper finished before it could be interrupted"
+    process.send_signal(signal.SIGINT)
+    stdout, _ = process.communicate(timeout=60)
+    reader.join()
+    return subprocess.CompletedProcess(process.args, process.returncode, stdout, "".join(stderr))
+
+
+@case("ctrl_c_while_mapping", "interrupted", code=130, run=_run_interrupted)
+def _(env):
+    database, images, _ = env.assets.big
+    env.previous_model()
+    return env.mapper(env.copy(database), env.copy(images), None, "--overwrite", "--seed", "0")
+
+
+# ---- evaluate
+
+
+@case("evaluate_positive_control", "registered: 6 / 6", code=0, command="evaluate")
+def _(env):
+    return env.evaluate()
+
+
+@case("evaluate_model_missing", "model not found", command="evaluate")
+def _(env):
+    return env.evaluate(env.inputs / "nope")
+
+
+@case("evaluate_model_folder_empty", "not a readable COLMAP model", command="evaluate")
+def _(env):
+    (env.inputs / "model").mkdir()
+    return env.evaluate(env.inputs / "model")
+
+
+@case("evaluate_model_truncated", "not a readable COLMAP model", command="evaluate")
+def _(env):
+    model = env.copy(env.assets.model / "0", "model")
+    data = (model / "images.bin").read_bytes()
+    (model / "images.bin").write_bytes(data[: len(data) // 2])
+    return env.evaluate(model)
+
+
+def _text_model(env, edit: Callable[[str], str]) -> Path:
+    import pycolmap
+
+    model = env.inputs / "model"
+    model.mkdir()
+    pycolmap.Reconstruction(env.assets.model / "0").write_text(model)
+    cameras = model / "cameras.txt"
+    cameras.write_text(edit(cameras.read_text()))
+    return model
+
+
+@case("evaluate_unknown_camera_model_name", "not a readable COLMAP model", command="evaluate")
+def _(env):
+    return env.evaluate(_text_model(env, lambda text: text.replace(" OPENCV ", " FANCY_LENS ")))
+
+
+@case("evaluate_wrong_number_of_params", "not a readable COLMAP model", command="evaluate")
+def _(env):
+    return env.evaluate(_text_model(env, lambda text: re.sub(r"(OPENCV 640 480 \S+ \S+ \S+).*",
+                                                             r"\1", text)))
+
+
+@case("gt_missing", "ground truth not found", command="evaluate")
+def _(env):
+    return env.evaluate(None, env.inputs / "nope_par.txt")
+
+
+def _edited_truth(env, edit: Callable[[list[str]], list[str]]) -> Path:
+    lines = env.assets.ground_truth.read_text().splitlines()
+    path = env.inputs / "small_par.txt"
+    path.write_text("\n".join(edit(lines)) + "\n")
+    return path
+
+
+@case("gt_empty", "empty file", command="evaluate")
+def _(env):
+    return env.evaluate(None, _edited_truth(env, lambda lines: []))
+
+
+@case("gt_too_few_numbers", "expected 21 numbers", command="evaluate")
+def _(env):
+    return env.evaluate(None, _edited_truth(env, lambda l: [*l[:3], " ".join(l[3].split()[:-1]), *l[4:]]))
+
+
+@case("gt_not_a_number", "not a number", command="evaluate")
+def _(env):
+    return env.evaluate(None, _edited_truth(env, lambda l: [*l[:2], l[2].replace(" ", " x", 1), *l[3:]]))
+
+
+@case("gt_nan", "non-finite number", command="evaluate")
+def _(env):
+    return env.evaluate(None, _edited_truth(env, lambda l: [*l[:2], re.sub(r"\S+$", "nan", l[2]), *l[3:]]))
+
+
+@case("gt_count_mismatch", "announces 6 images, found 4", command="evaluate")
+def _(env):
+    return env.evaluate(None, _edited_truth(env, lambda lines: lines[:5]))
+
+
+@case("gt_binary_garbage", "cannot read", command="evaluate")
+def _(env):
+    path = env.inputs / "small_par.txt"
+    path.write_bytes(bytes(range(256)) * 4)
+    return env.evaluate(None, path)
+
+
+@case("gt_no_matching_images", "registered image(s) match", command="evaluate")
+def _(env):
+    return env.evaluate(None, _edited_truth(env, lambda lines: [l.replace("ring", "other") for l in lines]))
+
+
+@case("gt_covers_half_the_model", "registered: 3 / 3", code=0, command="evaluate")
+def _(env):
+    return env.evaluate(None, _edited_truth(env, lambda lines: ["3", *lines[1:4]]))
+
+
+@case("evaluate_output_below_a_file", "cannot write", command="evaluate")
+def _(env):
+    (env.inputs / "file").write_text("not a folder")
+    return env.evaluate(None, None, "--output", str(env.inputs / "file" / "report.json"))
+
+
+# ---- reconstruct (images and known intrinsics in)
+
+
+def _reconstruct(env, *extra: str, model: str = "PINHOLE", params: str = "600,600,4,4") -> list[str]:
+    images = env.images()
+    return ["reconstruct", "--image_path", str(images), "--workspace_path", str(env.out),
+            "--camera_model", model, "--camera_params", params, *extra]
+
+
+@case("reconstruct_nan_params", "finite", command="reconstruct")
+def _(env):
+    return _reconstruct(env, params="nan,600,4,4")
+
+
+@case("reconstruct_unknown_camera_model", "unknown camera model", command="reconstruct")
+def _(env):
+    return _reconstruct(env, model="FANCY_LENS")
+
+
+@case("reconstruct_wrong_number_of_params", "takes 4 params", command="reconstruct")
+def _(env):
+    return _reconstruct(env, params="600,600,4")
+
+
+@case("reconstruct_zero_byte_image", "image file is empty", command="reconstruct")
+def _(env):
+    args = _reconstruct(env)
+    (env.inputs / "images" / "ring0001.png").write_bytes(b"")
+    return args
+
+
+@case("reconstruct_corrupt_image", "cannot read image", command="reconstruct")
+def _(env):
+    args = _reconstruct(env)
+    (env.inputs / "images" / "ring0002.png").write_bytes(b"\x89PNG\r\n\x1a\n" + b"garbage" * 50)
+    return args
+
+
+@case("reconstruct_workspace_is_a_file", "workspace path is a file", command="reconstruct")
+def _(env):
+    args = _reconstruct(env)
+    env.out.write_text("not a folder")
+    env.protected.append(env.out)
+    return args
+
+
+# ---------------------------------------------------------------- running and checking
+
+
+def child_env(env: Env) -> dict[str, str]:
+    return {**os.environ, "TMPDIR": str(env.tmp), "HOME": str(env.home),
+            "MPLCONFIGDIR": str(env.home), "PYTHONDONTWRITEBYTECODE": "1"}
+
+
+def run_cli(env: Env, args: list[str], cli: list[str] = CLI, **options) -> subprocess.CompletedProcess:
+    return subprocess.run([*cli, *args], capture_output=True, text=True, timeout=300,
+                          env=child_env(env), cwd=env.root, **options)
+
+
+def snapshot(paths: list[Path]) -> dict[str, tuple | None]:
+    """Every file's bytes (hash) and mode, every folder's mode, under `paths`."""
+    state: dict[str, tuple | None] = {}
+    for top in paths:
+        if not top.exists():
+            state[str(top)] = None
+            continue
+        for path in [top, *sorted(top.rglob("*"))] if top.is_dir() else [top]:
+            mode = path.lstat().st_mode
+            if path.is_dir():
+                state[str(path)] = ("folder", mode)
+            else:
+                try:
+                    state[str(path)] = ("file", mode, sha256(path))
+                except PermissionError:  # chmod 000 when not root
+                    state[str(path)] = ("file", mode, path.stat().st_size)
+    return state
+
+
+def message_lines(stderr: str) -> list[str]:
+    """stderr without progress bars: what the user reads."""
+    lines = [segment.strip() for line in stderr.split("\n") for segment in line.split("\r")]
+    return [line for line in lines if line and not PROGRESS_LINE.search(line)]
+
+
+@pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
+def test_bad_input(case: Case, assets, commands, unprivileged, tmp_path):
+    if case.command not in commands:
+        pytest.skip(f"`colmap-ext {case.command}` does not exist yet")
+    as_nobody = case.unprivileged and IS_ROOT
+    if case.unprivileged and unprivileged:
+        pytest.skip(unprivileged)
+    root = Path(tempfile.mkdtemp(prefix="bad-input-", dir="/tmp")) if as_nobody else tmp_path
+    try:
+        env = Env(root / "case", assets)
+        args = case.build(env)
+        if as_nobody:  # the user nobody owns the case folder; modes stay as built
+            os.chmod(root, 0o755)
+            for path in [env.root, *env.root.rglob("*")]:
+                os.lchown(path, NOBODY, NOBODY)
+        watched = [env.inputs, *env.protected]
+        before = snapshot(watched)
+        if case.run is not None:
+            result = case.run(env, args)
+        elif as_nobody:
+            result = run_cli(env, args, user=NOBODY, group=NOBODY, extra_groups=[])
+        else:
+            result = run_cli(env, args)
+        check(case, env, result, before, watched)
+    finally:
+        if as_nobody:
+            for path in [root, *root.rglob("*")]:
+                path.chmod(0o700)
+            shutil.rmtree(root)
+        else:
+            for path in [root, *root.rglob("*")]:  # chmod 000 would stop pytest's clean-up
+                if path.is_dir() or path.is_file():
+                    path.chmod(0o700)
+
+
+def check(case: Case, env: Env, result: subprocess.CompletedProcess, before: dict,
+          watched: list[Path]) -> None:
+    said = f"exit {result.returncode}\n--- stdout\n{result.stdout}\n--- stderr\n{result.stderr}"
+    assert "Traceback" not in result.stderr, said
+    assert result.returncode == case.code, said
+    lines = message_lines(result.stderr)
+    if case.code == 0:
+        assert case.message in result.stdout, said
+    elif case.code == 2:  # argparse: usage, then the error
+        assert lines and lines[-1].startswith("colmap-ext ") and case.message in lines[-1], said
+    else:
+        assert len(lines) == 1, f"expected one line on stderr\n{said}"
+        assert lines[0].startswith("colmap-ext: "), said
+        assert case.message in lines[0], said
+    assert snapshot(watched) == before, f"an input or a previous model changed\n{said}"
+    left = [p for folder in (env.out, env.tmp, env.root) if folder.is_dir()
+            for p in folder.iterdir() if p.name.startswith(TEMP_PREFIXES)]
+    left += list(env.tmp.iterdir())
+    assert not left, f"temporary files left behind: {left}\n{said}"
+    if case.after is not None:
+        case.after(env, result)
+    for note in env.notes:
+        print(note)
+
+
+def test_case_table_is_large_enough():
+    assert len(CASES) >= 25
+
+
+def test_same_seed_same_model_from_the_cli(assets, tmp_path):
+    """Two runs with --seed write the same model, bit for bit."""
+    database, images, _ = assets.small
+    env = Env(tmp_path / "case", assets)
+    outputs = []
+    for index in range(2):
+        out = tmp_path / f"out{index}"
+        result = run_cli(env, env.mapper(database, images, out, "--seed", "3"))
+        assert result.returncode == 0, result.stderr
+        outputs.append({p.name: sha256(p) for p in sorted((out / "0").iterdir())})
+    assert outputs[0] == outputs[1]
+    assert set(outputs[0]) >= {"cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin"}

@@ -1,0 +1,219 @@
+"""Matching by pycolmap, verification by our 5-point RANSAC: poses, E, inliers in the database."""
+
+from __future__ import annotations
+
+import itertools
+import os
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_ext.errors import UserError
+from colmap_ext.features import extract_features, quiet_colmap_logs
+from colmap_ext.matching import loop_closure_pairs, match_features
+
+WIDTH, HEIGHT, FOCAL = 480, 360, 500.0
+K = np.array([[FOCAL, 0, WIDTH / 2], [0, FOCAL, HEIGHT / 2], [0, 0, 1]])
+PARAMS = f"{FOCAL},{FOCAL},{WIDTH / 2},{HEIGHT / 2}"
+TEXTURE_SIZE = 1200
+# The scene (not planar, so that the relative pose is unique): a 2.4 x 2.4 textured floor
+# at z = 0 and the 1.2 x 1.2 textured top of a box at z = 0.4, each (half-size, height).
+FLOOR, BOX_TOP = (1.2, 0.0), (0.6, 0.4)
+
+
+def texture(seed: int) -> np.ndarray:
+    """Random discs and noise: plenty of distinctive SIFT keypoints."""
+    rng = np.random.default_rng(seed)
+    image = (rng.random((TEXTURE_SIZE // 8, TEXTURE_SIZE // 8)) * 255).astype(np.uint8)
+    image = cv2.resize(image, (TEXTURE_SIZE, TEXTURE_SIZE), interpolation=cv2.INTER_CUBIC)
+    for _ in range(600):
+        centre = tuple(int(v) for v in rng.integers(0, TEXTURE_SIZE, 2))
+        cv2.circle(image, centre, int(rng.integers(4, 30)), int(rng.integers(0, 256)), -1,
+                   cv2.LINE_AA)
+    return image
+
+
+def look_at(centre: np.ndarray) -> pycolmap.Rigid3d:
+    """cam_from_world of a camera at `centre` looking at the origin, image y roughly down."""
+    z = -centre / np.linalg.norm(centre)
+    x = np.cross([0.0, -1.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z])
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ centre)
+
+
+def render_square(texture_image: np.ndarray, pose: pycolmap.Rigid3d, square: tuple[float, float]
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """A textured horizontal square seen by the pinhole camera K at `pose`: a homography.
+    Returns the image and where the square covers it."""
+    half_size, height = square
+    M = pose.matrix()
+    scale = 2 * half_size / TEXTURE_SIZE
+    plane_from_texture = np.array([[scale, 0, -half_size], [0, scale, -half_size], [0, 0, 1]])
+    H = K @ np.column_stack([M[:, 0], M[:, 1], height * M[:, 2] + M[:, 3]]) @ plane_from_texture
+    size = (WIDTH, HEIGHT)
+    cover = cv2.warpPerspective(np.ones_like(texture_image), H, size, flags=cv2.INTER_NEAREST)
+    return cv2.warpPerspective(texture_image, H, size, flags=cv2.INTER_LINEAR), cover > 0
+
+
+def render(floor_texture: np.ndarray, box_texture: np.ndarray, pose: pycolmap.Rigid3d
+           ) -> np.ndarray:
+    """The floor with the box top in front of it (every camera looks down on both)."""
+    image, _ = render_square(floor_texture, pose, FLOOR)
+    top, cover = render_square(box_texture, pose, BOX_TOP)
+    image[cover] = top[cover]
+    return image
+
+
+def ring_poses(num_views: int) -> list[pycolmap.Rigid3d]:
+    """Cameras 2.5 from the floor's centre, 35 deg off vertical, 8 deg apart around it."""
+    poses = []
+    for k in range(num_views):
+        azimuth, tilt = np.radians(8.0 * k), np.radians(35.0)
+        centre = 2.5 * np.array([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth),
+                                 np.cos(tilt)])
+        poses.append(look_at(centre))
+    return poses
+
+
+@pytest.fixture(scope="module")
+def scene_database(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list]:
+    """Features of four views of the scene plus one view of a differently textured one."""
+    root = tmp_path_factory.mktemp("scene")
+    (root / "images").mkdir()
+    poses = ring_poses(4)
+    floor, box = texture(0), texture(1)
+    for k, pose in enumerate(poses):
+        cv2.imwrite(str(root / "images" / f"view{k}.png"), render(floor, box, pose))
+    cv2.imwrite(str(root / "images" / "zother.png"), render(texture(2), texture(3), poses[0]))
+    extract_features(root / "database.db", root / "images", camera_model="PINHOLE",
+                     camera_params=PARAMS, min_num_keypoints=0, progress=False)
+    return root / "database.db", poses
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1))))
+
+
+def test_verified_geometry_matches_the_true_relative_pose(scene_database, tmp_path: Path) -> None:
+    source, poses = scene_database
+    database_path = tmp_path / "database.db"
+    shutil.copy(source, database_path)
+    summary = match_features(database_path, matcher="exhaustive", progress=False)
+    by_pair = {(p.name1, p.name2): p for p in summary.pairs}
+    for (name1, name2), pair in by_pair.items():
+        if "zother" in name1 + name2:
+            assert pair.num_inliers == 0
+        else:
+            assert pair.num_inliers >= 100 and pair.num_inliers >= 0.8 * pair.num_matches
+
+    db = pycolmap.Database.open(database_path)
+    try:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        for k1, k2 in [(0, 1), (0, 3), (2, 3)]:
+            geometry = db.read_two_view_geometry(ids[f"view{k1}.png"], ids[f"view{k2}.png"])
+            assert geometry.config == pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+            truth = poses[k2] * poses[k1].inverse()
+            estimate = geometry.cam2_from_cam1
+            error = estimate.rotation.matrix() @ truth.rotation.matrix().T
+            assert rotation_angle_deg(error) < 0.5
+            cosine = estimate.translation @ truth.translation / np.linalg.norm(truth.translation)
+            assert np.degrees(np.arccos(min(1.0, cosine))) < 3.0
+            # x2^T E x1 = 0 on the inliers, in normalized coordinates.
+            keypoints1 = db.read_keypoints(ids[f"view{k1}.png"])[:, :2]
+            keypoints2 = db.read_keypoints(ids[f"view{k2}.png"])[:, :2]
+            matches = geometry.inlier_matches
+            x1 = np.linalg.solve(K, np.column_stack([keypoints1[matches[:, 0]],
+                                                     np.ones(len(matches))]).T)
+            x2 = np.linalg.solve(K, np.column_stack([keypoints2[matches[:, 1]],
+                                                     np.ones(len(matches))]).T)
+            residuals = np.abs(np.einsum("in,ij,jn->n", x2, geometry.E, x1))
+            assert np.median(residuals) < 1e-3
+    finally:
+        db.close()
+    assert summary.to_dict()["num_verified_pairs"] == 6
+
+
+def test_same_seed_same_result(scene_database, tmp_path: Path) -> None:
+    source, _ = scene_database
+    results = []
+    for run in range(2):
+        database_path = tmp_path / f"run{run}.db"
+        shutil.copy(source, database_path)
+        results.append(match_features(database_path, matcher="exhaustive", seed=7,
+                                      progress=False).pairs)
+    assert results[0] == results[1]
+
+
+def test_sequential_matching_closes_the_loop(scene_database, tmp_path: Path) -> None:
+    source, _ = scene_database
+    database_path = tmp_path / "database.db"
+    shutil.copy(source, database_path)
+    summary = match_features(database_path, matcher="sequential", overlap=1, progress=False)
+    assert summary.matcher == "sequential"
+    names = ["view0.png", "view1.png", "view2.png", "view3.png", "zother.png"]
+    db = pycolmap.Database.open(database_path)
+    try:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        tried = {(a, b) for a, b in itertools.combinations(names, 2)
+                 if db.exists_matches(ids[a], ids[b])}
+    finally:
+        db.close()
+    # Neighbours in name order, and the loop: the last image with the first.
+    assert tried == set(zip(names, names[1:])) | {("view0.png", "zother.png")}
+
+
+def test_loop_closure_pairs() -> None:
+    names = [f"{k}" for k in range(6)]
+    assert loop_closure_pairs(names, 2) == [("4", "0"), ("5", "0"), ("5", "1")]
+    assert loop_closure_pairs(names[:2], 5) == []
+
+
+def test_bad_options_and_databases(scene_database, tmp_path: Path) -> None:
+    source, _ = scene_database
+    with pytest.raises(UserError, match="unknown matcher 'vocab'"):
+        match_features(source, matcher="vocab")
+    with pytest.raises(UserError, match="max_ratio must be in"):
+        match_features(source, max_ratio=1.5)
+    with pytest.raises(UserError, match="database not found"):
+        match_features(tmp_path / "missing.db")
+    pycolmap.Database.open(tmp_path / "empty.db").close()
+    with pytest.raises(UserError, match="no features in .*extract features first"):
+        match_features(tmp_path / "empty.db")
+
+
+DATA = os.environ.get("COLMAP_EXT_DATA")
+
+
+@pytest.mark.skipif(not DATA, reason="COLMAP_EXT_DATA is not set (the folder holding "
+                    "templeSparseRing/): the real-data check is skipped")
+def test_temple_pairs_verify_and_colmap_maps_our_database(tmp_path: Path) -> None:
+    """Four neighbouring temple views: our inliers agree with COLMAP's verification, and
+    COLMAP's own incremental mapper reads the database we verified."""
+    names = [f"templeSR{k:04d}.png" for k in (6, 7, 8, 9)]
+    image_path = Path(DATA) / "templeSparseRing"
+    ours, theirs = tmp_path / "ours.db", tmp_path / "colmap.db"
+    extract_features(ours, image_path, camera_model="PINHOLE",
+                     camera_params="1520.4,1525.9,302.32,246.87", image_names=names,
+                     progress=False)
+    shutil.copy(ours, theirs)
+    summary = match_features(ours, matcher="exhaustive", progress=False)
+    with quiet_colmap_logs():
+        pycolmap.match_exhaustive(theirs, device=pycolmap.Device.cpu)
+    db = pycolmap.Database.open(theirs)
+    ids = {image.name: image.image_id for image in db.read_all_images()}
+    ours_by_pair = {(pair.name1, pair.name2): pair.num_inliers for pair in summary.pairs}
+    for name1, name2 in zip(names, names[1:]):
+        colmap_inliers = len(db.read_two_view_geometry(ids[name1], ids[name2]).inlier_matches)
+        assert ours_by_pair[name1, name2] >= 0.95 * colmap_inliers > 100
+    db.close()
+
+    options = pycolmap.IncrementalPipelineOptions(random_seed=0, constant_cameras={1})
+    (tmp_path / "sparse").mkdir()
+    with quiet_colmap_logs():
+        models = pycolmap.incremental_mapping(ours, image_path, tmp_path / "sparse", options)
+    assert max(model.num_reg_images() for model in models.values()) == 4

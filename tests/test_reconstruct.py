@@ -1,0 +1,95 @@
+"""`colmap-ext reconstruct`: its flags, its checks before any work, and a run end to end."""
+
+from __future__ import annotations
+
+import argparse
+import inspect
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_ext.errors import UserError
+from colmap_ext.reconstruct import add_arguments, main
+from colmap_ext.synthetic.render import render_images
+from colmap_ext.synthetic.scene import ring_scene
+
+# A 320x240 version of the synthetic scenes' distorted OPENCV camera.
+CAMERA = pycolmap.Camera(camera_id=1, model="OPENCV", width=320, height=240,
+                         params=[300.0, 300.0, 159.0, 121.0, -0.1, 0.01, 0.0, 0.0])
+PARAMS = ",".join(f"{value:g}" for value in CAMERA.params)
+
+
+@pytest.fixture
+def images(tmp_path: Path) -> Path:
+    """Two noise images: enough for every check that runs before extraction."""
+    folder = tmp_path / "images"
+    folder.mkdir()
+    rng = np.random.default_rng(0)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(folder / name), rng.integers(0, 256, (240, 320), dtype=np.uint8))
+    return folder
+
+
+def test_flags_are_mains_keywords_with_its_defaults() -> None:
+    parser = argparse.ArgumentParser()
+    add_arguments(parser)
+    args = vars(parser.parse_args(["--image_path", "i", "--workspace_path", "w",
+                                   "--camera_model", "PINHOLE", "--camera_params", "1,1,0,0"]))
+    parameters = inspect.signature(main).parameters
+    assert set(args) == set(parameters)
+    for name, parameter in parameters.items():
+        if parameter.default is not inspect.Parameter.empty:
+            assert args[name] == parameter.default, name
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"camera_params": "300,300,159"}, "OPENCV takes 8 params"),
+    ({"camera_params": "300,300,159,121,nan,0,0,0"}, "finite"),
+    ({"camera_model": "OPENCVV"}, "unknown camera model"),
+    ({"mask_path": "m", "segment": "threshold"}, "give --mask_path or --segment, not both"),
+    ({"matcher": "vocab_tree"}, "unknown --matcher"),
+    ({"output_type": "PLY"}, "--output_type must be BIN or TXT"),
+    ({"image_path": "nowhere"}, "image folder not found"),
+])
+def test_bad_input_fails_before_any_work(images: Path, tmp_path: Path, changes: dict,
+                                         message: str) -> None:
+    arguments = {"image_path": images, "workspace_path": tmp_path / "ws",
+                 "camera_model": "OPENCV", "camera_params": PARAMS, **changes}
+    with pytest.raises(UserError, match=message.replace("(", r"\(")):
+        main(**arguments)
+    assert not (tmp_path / "ws" / "database.db").exists()
+
+
+def test_an_earlier_database_needs_overwrite(images: Path, tmp_path: Path) -> None:
+    workspace = tmp_path / "ws"
+    workspace.mkdir()
+    (workspace / "database.db").write_bytes(b"")
+    with pytest.raises(UserError, match="database.db exists from an earlier run; pass --overwrite"):
+        main(images, workspace, "OPENCV", PARAMS)
+
+
+def test_ring_end_to_end(tmp_path: Path) -> None:
+    """Ten views of the synthetic ring scene through a distorted camera: masks are not
+    needed (the room is static), features, matching and the mapper run, and the
+    workspace holds the database, the model and the summary."""
+    render_images(ring_scene(num_images=10, seed=0, camera=CAMERA), tmp_path / "images",
+                  supersample=1)
+    workspace = tmp_path / "ws"
+    summary = main(tmp_path / "images", workspace, "OPENCV", PARAMS, seed=0, output_type="txt")
+
+    assert (workspace / "database.db").is_file()
+    assert (workspace / "sparse" / "0" / "images.txt").is_file()
+    assert json.loads((workspace / "reconstruct_summary.json").read_text()) == \
+        json.loads(json.dumps(summary))
+    assert summary["inputs"]["seed"] == 0 and summary["features"]["num_images"] == 10
+    assert summary["matching"]["matcher"] == "exhaustive"
+    assert summary["models"][0]["num_registered"] >= 6
+    assert set(summary["time_s"]) == {"features", "matching", "verification", "mapper", "total"}
+    model = pycolmap.Reconstruction(workspace / "sparse" / "0")
+    assert list(model.cameras[1].params) == pytest.approx(list(CAMERA.params))
+    with pytest.raises(UserError, match="pass --overwrite"):
+        main(tmp_path / "images", workspace, "OPENCV", PARAMS)
