@@ -54,14 +54,28 @@ def write_models(reconstructions: list[pycolmap.Reconstruction], output_path: st
                 reconstruction.write_text(folder)
             else:
                 reconstruction.write_binary(folder)
-            if not any(folder.iterdir()):
-                raise OSError(f"nothing was written to {folder}")
+            _check_written(reconstruction, folder)
         _swap_in(new, output_path, staging / "old")
-    except OSError as exc:
+    except (OSError, ValueError, RuntimeError) as exc:  # pycolmap: ValueError on a failed open
         raise UserError(f"could not write the model to {output_path}: "
-                        f"{exc.strerror or exc}; the previous model is unchanged") from None
+                        f"{getattr(exc, 'strerror', None) or exc}; the previous model is unchanged") from None
     finally:
         shutil.rmtree(staging, ignore_errors=True)
+
+
+def _check_written(reconstruction: pycolmap.Reconstruction, folder: Path) -> None:
+    """pycolmap does not check its writes: a full disk leaves truncated files and no error.
+    Read the model back before it replaces anything."""
+    def counts(model: pycolmap.Reconstruction) -> tuple[int, ...]:
+        return (model.num_cameras(), model.num_images(), model.num_reg_images(),
+                model.num_points3D())
+
+    try:
+        complete = counts(pycolmap.Reconstruction(folder)) == counts(reconstruction)
+    except Exception:  # ValueError, IndexError... on a truncated file
+        complete = False
+    if not complete:
+        raise OSError(f"the model written to {folder.name} reads back incomplete (is the disk full?)")
 
 
 def _swap_in(new: Path, output_path: Path, old: Path) -> None:
@@ -77,7 +91,7 @@ def _swap_in(new: Path, output_path: Path, old: Path) -> None:
         for folder in sorted(new.iterdir(), key=lambda p: int(p.name)):
             folder.rename(output_path / folder.name)
             moved_in.append(output_path / folder.name)
-    except OSError:
+    except BaseException:  # OSError, or Ctrl-C between two renames
         for folder in moved_in:
             shutil.rmtree(folder, ignore_errors=True)
         for previous in moved_out:

@@ -56,6 +56,9 @@ class Assets:
 
     def __init__(self, root: Path) -> None:
         self.root = root
+        # HOME and MPLCONFIGDIR of the runs: matplotlib's font cache is built once, here.
+        self.home = root / "home"
+        self.home.mkdir()
 
     def _synthetic(self, name: str, num_images: int, num_points: int) -> tuple[Path, Path, list[str]]:
         from colmap_ext.synthetic.database import scene_points, write_synthetic_database
@@ -188,9 +191,10 @@ def assets(tmp_path_factory) -> Assets:
 
 
 @pytest.fixture(scope="session")
-def commands() -> set[str]:
+def commands(assets) -> set[str]:
     """The subcommands the CLI has now (others are being written)."""
-    result = subprocess.run([*CLI, "--help"], capture_output=True, text=True, timeout=60)
+    result = subprocess.run([*CLI, "--help"], capture_output=True, text=True, timeout=60,
+                            env={**os.environ, "HOME": str(assets.home), "MPLCONFIGDIR": str(assets.home)})
     return set(re.findall(r"^    (\w+)\s", result.stdout, re.MULTILINE))
 
 
@@ -227,17 +231,19 @@ class Env:
 
     root: Path
     assets: Assets
+    home: Path | None = None  # HOME of the run: the shared one unless it runs as nobody
     protected: list[Path] = field(default_factory=list)  # also hashed, e.g. a previous model
     notes: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
+        if self.home is None:
+            self.home = self.assets.home
         for folder in (self.inputs, self.tmp, self.home):
             folder.mkdir(parents=True, exist_ok=True)
 
     inputs = property(lambda self: self.root / "in")
     out = property(lambda self: self.root / "out")
     tmp = property(lambda self: self.root / "tmp")
-    home = property(lambda self: self.root / "home")
 
     def copy(self, source: Path, name: str | None = None) -> Path:
         target = self.inputs / (name or source.name)
@@ -617,21 +623,26 @@ def _(env):
 
 
 def _run_interrupted(env, args):
-    """Start mapping, press Ctrl-C once the images are being registered."""
-    process = subprocess.Popen([*CLI, *args], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True, env=child_env(env), cwd=env.root)
-    stderr: list[str] = []
-    reader = threading.Thread(target=lambda: stderr.extend(iter(lambda: process.stderr.read(1), "")))
-    reader.start()
-    deadline = time.monotonic() + 60
-    while "registered:" not in "".join(stderr) and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.05)
-    time.sleep(0.5)
-    assert process.poll() is None, "the mapper finished before it could be interrupted"
-    process.send_signal(signal.SIGINT)
-    stdout, _ = process.communicate(timeout=60)
-    reader.join()
-    return subprocess.CompletedProcess(process.args, process.returncode, stdout, "".join(stderr))
+    """Start mapping, press Ctrl-C once images are being registered."""
+    with open(env.root / "stdout.txt", "w+") as stdout:
+        process = subprocess.Popen([*CLI, *args], stdout=stdout, stderr=subprocess.PIPE,
+                                   text=True, env=child_env(env), cwd=env.root)
+        stderr: list[str] = []
+        reader = threading.Thread(target=lambda: stderr.extend(iter(lambda: process.stderr.read(1), "")))
+        reader.start()
+        deadline = time.monotonic() + 60
+        while "registered:" not in "".join(stderr) and process.poll() is None \
+                and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)
+        running = process.poll() is None
+        process.send_signal(signal.SIGINT)
+        process.wait(timeout=60)
+        reader.join()
+        stdout.seek(0)
+        result = subprocess.CompletedProcess(process.args, process.returncode, stdout.read(), "".join(stderr))
+    assert running, f"the mapper finished before it could be interrupted\n{result.stderr}"
+    return result
 
 
 @case("ctrl_c_while_mapping", "interrupted", code=130, run=_run_interrupted)
@@ -843,7 +854,7 @@ def test_bad_input(case: Case, assets, commands, unprivileged, tmp_path):
         pytest.skip(unprivileged)
     root = Path(tempfile.mkdtemp(prefix="bad-input-", dir="/tmp")) if as_nobody else tmp_path
     try:
-        env = Env(root / "case", assets)
+        env = Env(root / "case", assets, home=root / "case" / "home" if as_nobody else None)
         args = case.build(env)
         if as_nobody:  # the user nobody owns the case folder; modes stay as built
             os.chmod(root, 0o755)

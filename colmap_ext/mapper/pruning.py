@@ -23,28 +23,38 @@ def prune(model: Model, image_ids: list[int], options: MapperOptions,
         for point_id in point_ids[errors > options.max_reproj_error_px].tolist():
             model.delete_observation(point_id, image_id)
             removed_observations += 1
+    candidates = [p for p in touched if p in model.tracks]
+    angles = max_triangulation_angles_deg(model, candidates)
     removed_points = 0
-    for point_id in touched:
-        if point_id in model.tracks and not _supported(model, point_id, options, final):
+    for point_id, angle in zip(candidates, angles):
+        if not _supported(model, point_id, angle, options, final):
             model.delete_point(point_id)
             removed_points += 1
     return removed_observations, removed_points
 
 
-def _supported(model: Model, point_id: int, options: MapperOptions, final: bool) -> bool:
+def _supported(model: Model, point_id: int, angle_deg: float, options: MapperOptions,
+               final: bool) -> bool:
     track = model.tracks[point_id]
     if len(track) < 2:
         return False
     age = model.num_registered - model.born[point_id]
     if len(track) < options.min_track_length and (final or age >= options.track_grace_registrations):
         return False
-    return max_triangulation_angle_deg(model, point_id) >= options.min_tri_angle_deg
+    return angle_deg >= options.min_tri_angle_deg
 
 
-def max_triangulation_angle_deg(model: Model, point_id: int) -> float:
-    """The widest angle between two rays of a point's track."""
-    centres = np.array([model.centre(image_id) for image_id in model.tracks[point_id]])
-    directions = model.xyz[point_id] - centres
-    directions /= np.maximum(np.linalg.norm(directions, axis=1, keepdims=True), 1e-30)
-    cosines = directions @ directions.T
-    return float(np.degrees(np.arccos(np.clip(cosines.min(), -1.0, 1.0))))
+def max_triangulation_angles_deg(model: Model, point_ids: list[int]) -> np.ndarray:
+    """The widest angle between two rays of each point's track (0 for single rays)."""
+    if not point_ids:
+        return np.zeros(0)
+    centres = {image_id: model.centre(image_id) for image_id in model.poses}
+    lengths = np.array([len(model.tracks[p]) for p in point_ids])
+    rays = np.full((len(point_ids), lengths.max(), 3), np.nan)
+    for row, point_id in enumerate(point_ids):
+        track_centres = [centres[image_id] for image_id in model.tracks[point_id]]
+        if track_centres:
+            rays[row, :len(track_centres)] = model.xyz[point_id] - np.array(track_centres)
+    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
+    cosines = np.nan_to_num(np.einsum("pid,pjd->pij", rays, rays), nan=1.0)
+    return np.degrees(np.arccos(np.clip(cosines.min(axis=(1, 2)), -1.0, 1.0)))
