@@ -44,7 +44,6 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from colmap_ext.database import _check_sqlite
 from colmap_ext.errors import UserError
 from colmap_ext.evaluate import MEASURES, evaluate, summary_key
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
@@ -291,13 +290,19 @@ def parse_mappers(mappers: str | Sequence[str]) -> list[str]:
 def check_inputs(database_path: Path, image_path: Path, output_path: Path,
                  ground_truth: str | os.PathLike | None, mappers: list[str],
                  overwrite: bool) -> GroundTruth | None:
-    """Every check that can fail, before any mapper runs; returns the ground truth."""
-    _check_sqlite(database_path)
+    """The checks that need no copy of the database; returns the ground truth."""
+    if not database_path.is_file():
+        raise UserError(f"database not found: {database_path}")
+    try:
+        with open(database_path, "rb") as f:
+            header = f.read(16)
+    except OSError as exc:
+        raise UserError(f"cannot read database {database_path}: {exc.strerror}") from None
+    if header != b"SQLite format 3\x00":
+        raise UserError(f"not an SQLite database: {database_path}")
     if not image_path.is_dir():
         raise UserError(f"image path not found: {image_path}")
     truth = read_ground_truth(ground_truth) if ground_truth is not None else None
-    if truth is not None:
-        _check_ground_truth_names(database_path, truth)
     if output_path.exists() and not output_path.is_dir():
         raise UserError(f"output path is a file, not a folder: {output_path}")
     if not overwrite:
@@ -308,24 +313,53 @@ def check_inputs(database_path: Path, image_path: Path, output_path: Path,
         if taken:
             raise UserError(f"{output_path / taken[0] / '0'} already holds a model; pass "
                             "--overwrite to replace it")
-    try:
-        output_path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create output folder {output_path}: {exc.strerror}") from None
-    if not os.access(output_path, os.W_OK):
-        raise UserError(f"no permission to write in {output_path}")
     return truth
 
 
-def _check_ground_truth_names(database_path: Path, truth: GroundTruth) -> None:
+def copy_database(database_path: Path, copy: Path) -> None:
+    """Copy a database file and its write-ahead log, if any, as bytes: even a read-only
+    SQLite connection leaves -wal/-shm files beside a WAL-mode database."""
+    try:
+        shutil.copyfile(database_path, copy)
+        wal = database_path.with_name(f"{database_path.name}-wal")
+        if wal.is_file():
+            shutil.copyfile(wal, copy.with_name(f"{copy.name}-wal"))
+    except OSError as exc:
+        raise UserError(f"cannot copy database {database_path}: {exc.strerror or exc}") from None
+
+
+def read_image_names(copy: Path, database_path: Path) -> list[str]:
+    """The image names of a COLMAP database (a private copy of `database_path`)."""
+    try:
+        with closing(sqlite3.connect(copy)) as conn:
+            tables = {row[0] for row in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+            missing = {"cameras", "images", "keypoints", "descriptors", "matches"} - tables
+            if missing:
+                raise UserError(f"not a COLMAP database (no table {', '.join(sorted(missing))}): "
+                                f"{database_path}")
+            return [row[0] for row in conn.execute("SELECT name FROM images")]
+    except sqlite3.Error as exc:
+        raise UserError(f"cannot read database {database_path}: {exc}") from None
+
+
+def check_ground_truth_names(names: list[str], truth: GroundTruth, database_path: Path) -> None:
     """At least two ground-truth images must be in the database (by name, or by a basename)."""
-    with closing(sqlite3.connect(f"file:{database_path}?mode=ro", uri=True)) as conn:
-        names = [row[0] for row in conn.execute("SELECT name FROM images")]
-    bases = {PurePosixPath(name).name for name in names}
-    found = [n for n in truth.poses if n in names or PurePosixPath(n).name in bases]
+    exact, bases = set(names), {PurePosixPath(name).name for name in names}
+    found = [n for n in truth.poses if n in exact or PurePosixPath(n).name in bases]
     if len(found) < 2:
         raise UserError(f"only {len(found)} of the {len(truth.poses)} ground-truth images are in "
                         f"the database {database_path}; is it the right ground truth?")
+
+
+def _make_output_folder(output_path: Path) -> bool:
+    """Create the output folder if needed and check it takes files; True if it was created."""
+    created = not output_path.exists()
+    try:
+        output_path.mkdir(parents=True, exist_ok=True)
+        os.rmdir(tempfile.mkdtemp(prefix=".colmap-ext-", dir=output_path))
+    except OSError as exc:
+        raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
+    return created
 
 
 def compare(database_path: str | os.PathLike, image_path: str | os.PathLike,
@@ -333,10 +367,38 @@ def compare(database_path: str | os.PathLike, image_path: str | os.PathLike,
             mappers: str | Sequence[str] = MAPPERS, seed: int | None = None,
             overwrite: bool = False, progress: bool = True) -> dict:
     """Run the mappers, write CMP/<mapper>/..., report.json, report.md (and errors.png with a
-    ground truth); returns the report."""
+    ground truth); returns the report.
+
+    The user's database is read once, as bytes, into a private copy; every mapper gets a
+    copy of that copy. Every check runs before the first mapper.
+    """
     database_path, image_path, output_path = Path(database_path), Path(image_path), Path(output_path)
     names = parse_mappers(mappers)
     truth = check_inputs(database_path, image_path, output_path, ground_truth, names, overwrite)
+    created = _make_output_folder(output_path)
+    work = Path(tempfile.mkdtemp(prefix=".colmap-ext-compare-", dir=output_path))
+    try:
+        source = work / "source" / "database.db"
+        source.parent.mkdir()
+        try:
+            copy_database(database_path, source)
+            image_names = read_image_names(source, database_path)
+            if truth is not None:
+                check_ground_truth_names(image_names, truth, database_path)
+        except BaseException:
+            shutil.rmtree(work, ignore_errors=True)
+            if created:
+                shutil.rmtree(output_path, ignore_errors=True)
+            raise
+        return _compare(source, len(image_names), database_path, image_path, output_path,
+                        ground_truth, truth, names, seed, progress, work)
+    finally:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def _compare(source: Path, num_images: int, database_path: Path, image_path: Path,
+             output_path: Path, ground_truth: str | os.PathLike | None, truth: GroundTruth | None,
+             names: list[str], seed: int | None, progress: bool, work: Path) -> dict:
     seed = secrets.randbits(31) if seed is None else seed
     report: dict = {
         "database_path": str(database_path), "image_path": str(image_path),
@@ -345,35 +407,30 @@ def compare(database_path: str | os.PathLike, image_path: str | os.PathLike,
     }
     models: dict[str, pycolmap.Reconstruction] = {}
     evaluations: dict[str, dict] = {}
-    num_images = _count_images(database_path)
-    work = Path(tempfile.mkdtemp(prefix=".colmap-ext-compare-", dir=output_path))
-    try:
-        for index, name in enumerate(names, start=1):
-            copy = work / name / "database.db"
-            copy.parent.mkdir()
-            shutil.copyfile(database_path, copy)
-            if progress:
-                print(f"[{index}/{len(names)}] {name}", file=sys.stderr, flush=True)
-            result = run_mapper(name, copy, image_path, output_path / name, seed, progress)
-            shutil.rmtree(copy.parent, ignore_errors=True)
-            entry = _mapper_entry(result, num_images)
-            if result.error is not None:
-                _remove_stale_models(output_path / name)
-            else:
-                models[name] = result.reconstructions[0]
-                if truth is not None:
-                    try:
-                        evaluations[name] = evaluate(result.reconstructions[0], truth)
-                    except UserError as exc:
-                        entry["evaluation_error"] = str(exc)
-                    else:
-                        entry.update({k: v for k, v in evaluations[name].items()
-                                      if k != "num_registered"})
-            report["mappers"][name] = entry
-            if progress:
-                print(f"  {name}: {_one_line(entry)}", file=sys.stderr, flush=True)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
+    for index, name in enumerate(names, start=1):
+        copy = work / name / "database.db"
+        copy.parent.mkdir()
+        copy_database(source, copy)
+        if progress:
+            print(f"[{index}/{len(names)}] {name}", file=sys.stderr, flush=True)
+        result = run_mapper(name, copy, image_path, output_path / name, seed, progress)
+        shutil.rmtree(copy.parent, ignore_errors=True)
+        entry = _mapper_entry(result, num_images)
+        if result.error is not None:
+            _remove_stale_models(output_path / name)
+        else:
+            models[name] = result.reconstructions[0]
+            if truth is not None:
+                try:
+                    evaluations[name] = evaluate(result.reconstructions[0], truth)
+                except UserError as exc:
+                    entry["evaluation_error"] = str(exc)
+                else:
+                    entry.update({k: v for k, v in evaluations[name].items()
+                                  if k != "num_registered"})
+        report["mappers"][name] = entry
+        if progress:
+            print(f"  {name}: {_one_line(entry)}", file=sys.stderr, flush=True)
     report["model_comparison"] = model_distances(models, names)
     errors_png = output_path / "errors.png"
     if evaluations:
@@ -383,11 +440,6 @@ def compare(database_path: str | os.PathLike, image_path: str | os.PathLike,
     write_json(report, output_path / REPORT_NAME)
     _write_text(output_path / "report.md", format_markdown(report, has_plot=bool(evaluations)))
     return report
-
-
-def _count_images(database_path: Path) -> int:
-    with closing(sqlite3.connect(f"file:{database_path}?mode=ro", uri=True)) as conn:
-        return int(conn.execute("SELECT COUNT(*) FROM images").fetchone()[0])
 
 
 def _mapper_entry(result: MapperRun, num_images: int) -> dict:

@@ -46,6 +46,9 @@ class MapperOptions:
     ba_global_images_ratio: float = 1.1
     ba_global_max_iterations: int = 50
     ba_loss_scale_px: float = 1.0
+    # Ceres stops when an iteration lowers the cost by less than this fraction (0: run
+    # to the iteration limit, as COLMAP does).
+    ba_function_tolerance: float = 0.0
     # Images that fail to register are tried again this many times as the model grows.
     max_registration_trials: int = 3
     # A model smaller than this is not kept; the remaining images start a new model.
