@@ -52,7 +52,7 @@ def main(argv: list[str] | None = None) -> int:
         kwargs = {k: v for k, v in vars(args).items() if k not in ("command", "_module")}
         # COLMAP's log lines go to stderr as before, but not also to files in /tmp (glog's
         # default in pycolmap), which every run would leave behind.
-        import pycolmap  # here, not first: see the note on zlib in tests/test_bad_input.py
+        import pycolmap  # not at the top: loaded before zlib, pycolmap breaks every PNG write
 
         pycolmap.logging.logtostderr = True
         args._module.main(**kwargs)

@@ -38,6 +38,8 @@ class DatabaseContents:
 
 
 def _check_file(path: Path) -> None:
+    if path.is_dir():
+        raise UserError(f"database path is a folder, not a file: {path}")
     if not path.is_file():
         raise UserError(f"database not found: {path}")
     try:

@@ -6,6 +6,7 @@ any interactive backend of the caller alone.
 
 from __future__ import annotations
 
+import contextlib
 import os
 from pathlib import Path
 
@@ -58,7 +59,7 @@ def _draw_series(axes, report: dict, series: tuple, colour: str) -> None:
         axes.plot(index, values, linestyle=style, marker=marker, color=colour, markersize=4, clip_on=False)
     missing = index[[entry[series[0][0]] is None for entry in entries]]
     if missing.size:
-            axes.plot(missing, np.zeros(missing.size), "x", color=colour, markersize=9,
+        axes.plot(missing, np.zeros(missing.size), "x", color=colour, markersize=9,
                   markeredgewidth=2, clip_on=False)
 
 
@@ -90,7 +91,8 @@ def _save(figure: Figure, path: Path) -> None:
         figure.savefig(temporary, format=path.suffix.lstrip(".").lower() or "png", dpi=120)
         os.replace(temporary, path)
     except OSError as exc:
-        temporary.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            temporary.unlink(missing_ok=True)
         raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None
     except ValueError as exc:  # matplotlib's refusal of an unknown format
         raise UserError(f"cannot write {path}: {exc}") from None

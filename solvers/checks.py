@@ -24,10 +24,11 @@ def as_rays(values, name: str) -> np.ndarray:
         array = np.hstack([array, np.ones((len(array), 1))])
     elif array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 2) or (N, 3), got {array.shape}")
-    norms = np.linalg.norm(array, axis=1, keepdims=True)
-    if (norms == 0).any():
+    largest = np.abs(array).max(axis=1, keepdims=True)
+    if (largest == 0).any():
         raise ValueError(f"{name} contains a zero-length ray")
-    return np.ascontiguousarray(array / norms)
+    array = array / largest  # no overflow in the norm for huge entries
+    return np.ascontiguousarray(array / np.linalg.norm(array, axis=1, keepdims=True))
 
 
 def as_points3D(values, name: str) -> np.ndarray:

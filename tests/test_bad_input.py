@@ -33,7 +33,8 @@ import pytest
 CLI = [sys.executable, "-m", "colmap_ext"]
 NOBODY = 65534
 IS_ROOT = os.geteuid() == 0
-PROGRESS_LINE = re.compile(r"\d+%\|")  # tqdm's bars, e.g. "registered:  50%|#####     | 3/6"
+# tqdm's bars: "registered:  50%|#####     | 3/6 [00:01<00:01, ...]", "pairs: 0pair [00:00, ...]"
+PROGRESS_LINE = re.compile(r"\d+%\||\[\d+:\d\d[<,\]]")
 TEMP_PREFIXES = (".colmap-ext-", "colmap-ext-")
 
 
@@ -41,7 +42,9 @@ TEMP_PREFIXES = (".colmap-ext-", "colmap-ext-")
 
 
 def write_png(path: Path, size: tuple[int, int] = (8, 8)) -> None:
-    import cv2  # the mapper reads point colours from the images
+    """The mapper reads point colours from the images. (Any PNG writer aborts in zlib's
+    deflateEnd if pycolmap was loaded before zlib; pytest loads zlib first.)"""
+    import cv2
 
     path.parent.mkdir(parents=True, exist_ok=True)
     assert cv2.imwrite(str(path), np.zeros(size[::-1], np.uint8))
@@ -59,6 +62,7 @@ class Assets:
         # HOME and MPLCONFIGDIR of the runs: matplotlib's font cache is built once, here.
         self.home = root / "home"
         self.home.mkdir()
+        self.scenes: dict = {}
 
     def _synthetic(self, name: str, num_images: int, num_points: int) -> tuple[Path, Path, list[str]]:
         from colmap_ext.synthetic.database import scene_points, write_synthetic_database
@@ -72,7 +76,6 @@ class Assets:
                                  outlier_ratio=0.2, seed=3)
         for image_name in scene.image_names:
             write_png(folder / "images" / image_name)
-        self.scenes = getattr(self, "scenes", {})
         self.scenes[name] = scene
         return folder / "database.db", folder / "images", scene.image_names
 
@@ -171,9 +174,10 @@ def make_38_schema_database(source: Path, target: Path) -> None:
     """The features and matches of a 4.x database in COLMAP 3.8's schema."""
     with closing(sqlite3.connect(target)) as conn:
         conn.executescript(SCHEMA_38)
-        conn.execute("ATTACH DATABASE ? AS src", (f"file:{source}?mode=ro",))
+        conn.execute("ATTACH DATABASE ? AS src", (str(source),))
         conn.executescript("""
-            INSERT INTO cameras SELECT camera_id, model, width, height, params, prior_focal_length FROM src.cameras;
+            INSERT INTO cameras
+              SELECT camera_id, model, width, height, params, prior_focal_length FROM src.cameras;
             INSERT INTO images (image_id, name, camera_id) SELECT image_id, name, camera_id FROM src.images;
             INSERT INTO keypoints SELECT image_id, rows, cols, data FROM src.keypoints;
             INSERT INTO descriptors SELECT image_id, rows, cols, data FROM src.descriptors;
@@ -287,6 +291,7 @@ class Case:
     unprivileged: bool = False  # relies on file permissions: run as nobody when root
     run: Callable[[Env, list[str]], subprocess.CompletedProcess] | None = None  # custom runner
     after: Callable[[Env, subprocess.CompletedProcess], None] | None = None  # more checks
+    xfail: str | None = None  # a known bug outside this suite's reach, until it is fixed
 
 
 CASES: list[Case] = []
@@ -316,7 +321,7 @@ def _(env):
     return env.mapper(env.inputs / "nope.db")
 
 
-@case("db_is_a_folder", "database not found")
+@case("db_is_a_folder", "database path is a folder, not a file")
 def _(env):
     (env.inputs / "database.db").mkdir()
     return env.mapper(env.inputs / "database.db")
@@ -375,6 +380,12 @@ def _(env):
 @case("image_list_unknown_names", "images in the image list are not in the database")
 def _(env):
     (env.inputs / "list.txt").write_text("ring0000.png\nnot_an_image.png\n")
+    return env.mapper(env.small_db(), None, None, "--image_list_path", str(env.inputs / "list.txt"))
+
+
+@case("image_list_one_image", "no model could be reconstructed")
+def _(env):
+    (env.inputs / "list.txt").write_text("ring0000.png\n")
     return env.mapper(env.small_db(), None, None, "--image_list_path", str(env.inputs / "list.txt"))
 
 
@@ -460,6 +471,24 @@ def _(env):
 def _(env):
     params = np.full(8, np.nan)
     return env.mapper(edit_database(env.small_db(), ("UPDATE cameras SET params = ?", (params.tobytes(),))))
+
+
+@case("db_pending_wal_is_read", "has no valid parameters")
+def _(env):
+    """A database as a crashed COLMAP leaves it: committed changes still in its `-wal` file
+    (here: NaN parameters). They are part of the database; reading them changes nothing."""
+    database = env.small_db()
+    crashed = env.inputs / "crashed"
+    crashed.mkdir()
+    with closing(sqlite3.connect(database)) as conn:
+        conn.execute("PRAGMA journal_mode = WAL")
+        conn.execute("PRAGMA wal_autocheckpoint = 0")
+        conn.execute("UPDATE cameras SET params = ?", (np.full(8, np.nan).tobytes(),))
+        conn.commit()
+        for suffix in ("", "-wal"):
+            shutil.copyfile(f"{database}{suffix}", crashed / f"database.db{suffix}")
+    assert (crashed / "database.db-wal").stat().st_size > 0
+    return env.mapper(crashed / "database.db")
 
 
 @case("db_pycolmap4_positive_control", "Registered 6 images in 1 model", code=0)
@@ -807,6 +836,95 @@ def _(env):
     return args
 
 
+@case("reconstruct_principal_point_outside", "principal point", command="reconstruct")
+def _(env):
+    return _reconstruct(env, params="600,600,400,4")  # the images are 8x8
+
+
+@case("reconstruct_workspace_has_database", "pass --overwrite", command="reconstruct")
+def _(env):
+    args = _reconstruct(env)
+    env.out.mkdir()
+    shutil.copyfile(env.assets.small[0], env.out / "database.db")
+    env.protected.append(env.out)
+    return args
+
+
+# ---- evaluate: more ground-truth formats and outputs
+
+
+@case("gt_strecha_malformed", "expected 3 numbers", command="evaluate")
+def _(env):
+    truth = env.inputs / "strecha"
+    truth.mkdir()
+    rows = ["600 0 318", "0 600 242", "0 0 1", "0 0 0", "1 0 0", "0 1 0", "0 0 1", "0 0 0", "640 480"]
+    for index in range(6):
+        broken = rows[:7] + ["0 0"] + rows[8:] if index == 3 else rows  # the centre lost a number
+        (truth / f"ring{index:04d}.png.camera").write_text("\n".join(broken) + "\n")
+    return env.evaluate(None, truth)
+
+
+@case("evaluate_plot_below_a_file", "cannot write", command="evaluate")
+def _(env):
+    (env.inputs / "file").write_text("not a folder")
+    return env.evaluate(None, None, "--plot", str(env.inputs / "file" / "errors.png"))
+
+
+# ---- demo
+
+
+@case("demo_output_is_a_file", "output path is a file", command="demo")
+def _(env):
+    (env.inputs / "demo").write_text("not a folder")
+    return ["demo", "--output_path", str(env.inputs / "demo")]
+
+
+@case("demo_too_few_images", "--num_images must be at least 3", command="demo")
+def _(env):
+    return ["demo", "--output_path", str(env.out), "--num_images", "2"]
+
+
+@case("demo_already_there", "already holds a demo; pass --overwrite", command="demo")
+def _(env):
+    (env.out / "workspace" / "sparse" / "0").mkdir(parents=True)
+    (env.out / "workspace" / "sparse" / "0" / "images.bin").write_bytes(b"an earlier demo")
+    env.protected.append(env.out)
+    return ["demo", "--output_path", str(env.out)]
+
+
+# ---- compare (our mapper and COLMAP's on one database)
+
+
+def _compare(env, *extra: str, database: Path | None = None) -> list[str]:
+    return ["compare", "--database_path", str(database or env.small_db()),
+            "--image_path", str(env.images()), "--output_path", str(env.out), *extra]
+
+
+@case("compare_not_sqlite", "not an SQLite database", command="compare")
+def _(env):
+    (env.inputs / "database.db").write_text("not a database")
+    return _compare(env, database=env.inputs / "database.db")
+
+
+@case("compare_unknown_mapper", "unknown mapper", command="compare")
+def _(env):
+    return _compare(env, "--mappers", "ours,bundler")
+
+
+@case("compare_ground_truth_of_other_images", "ground-truth images are in", command="compare")
+def _(env):
+    truth = _edited_truth(env, lambda lines: [l.replace("ring", "other") for l in lines])
+    return _compare(env, "--ground_truth", str(truth))
+
+
+@case("compare_report_exists", "pass --overwrite", command="compare")
+def _(env):
+    env.out.mkdir()
+    (env.out / "report.json").write_text("{}\n")
+    env.protected.append(env.out)
+    return _compare(env)
+
+
 # ---------------------------------------------------------------- running and checking
 
 
@@ -846,9 +964,11 @@ def message_lines(stderr: str) -> list[str]:
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
-def test_bad_input(case: Case, assets, commands, unprivileged, tmp_path):
+def test_bad_input(case: Case, assets, commands, unprivileged, tmp_path, request):
     if case.command not in commands:
         pytest.skip(f"`colmap-ext {case.command}` does not exist yet")
+    if case.xfail:
+        request.applymarker(pytest.mark.xfail(reason=case.xfail, strict=True))
     as_nobody = case.unprivileged and IS_ROOT
     if case.unprivileged and unprivileged:
         pytest.skip(unprivileged)
@@ -919,5 +1039,5 @@ def test_same_seed_same_model_from_the_cli(assets, tmp_path):
         result = run_cli(env, env.mapper(database, images, out, "--seed", "3"))
         assert result.returncode == 0, result.stderr
         outputs.append({p.name: sha256(p) for p in sorted((out / "0").iterdir())})
-    assert outputs[0] == outputs[1]
+    assert outputs[0] == outputs[1], "two runs with --seed 3 wrote different models"
     assert set(outputs[0]) >= {"cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin"}

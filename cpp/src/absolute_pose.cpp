@@ -73,8 +73,10 @@ class AbsolutePoseEstimator {
 
   AbsolutePoseEstimator(const bearingVectors_t& rays, const points_t& points, P3PMethod method)
       : rays_(rays), points_(points), method_(method) {
+    constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
     xy_.reserve(rays.size());
-    for (const auto& f : rays) xy_.push_back(f.head<2>() / f.z());
+    for (const auto& f : rays)
+      xy_.push_back(f.z() > kMinRayZ ? Eigen::Vector2d(f.head<2>() / f.z()) : Eigen::Vector2d(kNaN, kNaN));
   }
 
   size_t num_data() const { return rays_.size(); }
@@ -89,10 +91,11 @@ class AbsolutePoseEstimator {
     for (const Pose& pose : p3p(s_rays, s_points, method_)) models->push_back(pose);
   }
 
-  // Reprojection error in normalized image units; points behind the camera never fit.
+  // Reprojection error in normalized image units; points behind the camera never fit,
+  // nor do rays without normalized coordinates (NaN).
   double squared_error(const Model& cam_from_world, size_t i) const {
     const Eigen::Vector3d x = cam_from_world.R * points_[i] + cam_from_world.t;
-    if (x.z() <= kMinRayZ || rays_[i].z() <= kMinRayZ) return std::numeric_limits<double>::infinity();
+    if (x.z() <= kMinRayZ) return std::numeric_limits<double>::infinity();
     return (x.head<2>() / x.z() - xy_[i]).squaredNorm();
   }
 
@@ -106,7 +109,7 @@ class AbsolutePoseEstimator {
   const bearingVectors_t& rays_;
   const points_t& points_;
   P3PMethod method_;
-  std::vector<Eigen::Vector2d> xy_;  // normalized image coordinates
+  std::vector<Eigen::Vector2d> xy_;  // normalized image coordinates; NaN if none
 };
 
 }  // namespace
@@ -117,9 +120,20 @@ std::vector<Pose> p3p(const bearingVectors_t& rays, const points_t& points, P3PM
   const opengv::transformations_t solutions =
       method == P3PMethod::kKneip ? opengv::absolute_pose::p3p_kneip(adapter, indices)
                                   : opengv::absolute_pose::p3p_gao(adapter, indices);
+  // OpenGV also returns poses from the real parts of complex roots (a third to half of
+  // its solutions): they do not fit the three pairs, or put points behind the camera.
+  // Keep the poses that see each point along its ray, to within kTolerance (unit rays).
+  constexpr double kTolerance = 1e-4;
   std::vector<Pose> poses;
   for (const auto& T : solutions) {
-    if (T.allFinite()) poses.push_back(from_opengv(T));
+    if (!T.allFinite()) continue;
+    const Pose pose = from_opengv(T);
+    bool fits = true;
+    for (int i = 0; i < 3; ++i) {
+      const Eigen::Vector3d x = pose.R * points[i] + pose.t;
+      fits &= (x.normalized() - rays[i].normalized()).norm() < kTolerance;
+    }
+    if (fits) poses.push_back(pose);
   }
   return poses;
 }

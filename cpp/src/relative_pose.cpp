@@ -27,21 +27,31 @@ Eigen::Matrix<double, 9, 4> epipolar_null_space(const bearingVectors_t& rays1,
   return Q.rightCols<4>();
 }
 
+// Whether a unit-norm E satisfies the essential-matrix constraint 2 E E^T E = tr(E E^T) E.
+// OpenGV's Nister solver returns an inaccurate root in a few percent of cases (its
+// Sturm bracketing and polishing); such matrices are not essential and are dropped.
+bool is_essential(const Eigen::Matrix3d& E) {
+  constexpr double kTolerance = 1e-3;
+  const Eigen::Matrix3d EEt = E * E.transpose();
+  return (2 * EEt * E - EEt.trace() * E).cwiseAbs().maxCoeff() < kTolerance;
+}
+
 // Essential matrices in COLMAP's convention, unit Frobenius norm, from the null space.
 void five_point_from_null_space(const Eigen::Matrix<double, 9, 4>& null_space,
                                 FivePointMethod method, std::vector<Eigen::Matrix3d>* essentials) {
+  const auto add = [&](const Eigen::Matrix3d& E_opengv) {
+    const Eigen::Matrix3d E = E_opengv.transpose() / E_opengv.norm();
+    if (E.allFinite() && is_essential(E)) essentials->push_back(E);
+  };
   if (method == FivePointMethod::kNister) {
     opengv::essentials_t solutions;
     opengv::relative_pose::modules::fivept_nister_main(null_space, solutions);
-    for (const auto& E : solutions) {
-      if (E.allFinite()) essentials->push_back(E.transpose() / E.norm());
-    }
+    for (const auto& E : solutions) add(E);
   } else {
     opengv::complexEssentials_t solutions;
     opengv::relative_pose::modules::fivept_stewenius_main(null_space, solutions);
     for (const auto& E : solutions) {
-      if (E.imag().norm() > 1e-8 * E.real().norm()) continue;  // complex root
-      if (E.real().allFinite()) essentials->push_back(E.real().transpose() / E.real().norm());
+      if (E.imag().norm() <= 1e-8 * E.real().norm()) add(E.real());  // else a complex root
     }
   }
 }

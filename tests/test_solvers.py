@@ -1,0 +1,601 @@
+"""The solvers package on synthetic scenes: accuracy, agreement with pycolmap, conventions,
+reproducibility, and bad or degenerate input (including a hypothesis fuzz)."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import solvers
+
+FOCAL = 1000.0  # pixels
+SIZE = 1000  # image width and height in pixels
+NOISE = 0.5 / FOCAL  # 0.5 px, in normalized image units
+MAX_ERROR = 2.0 / FOCAL  # 4 sigma: nearly every true inlier passes
+CAMERA = pycolmap.Camera(model="PINHOLE", width=SIZE, height=SIZE,
+                         params=[FOCAL, FOCAL, SIZE / 2, SIZE / 2])
+OUTLIER_RATIOS = [0.0, 0.2, 0.4, 0.6]
+
+
+# ---------------------------------------------------------------- synthetic scenes
+
+def rotation(rng: np.random.Generator, max_deg: float) -> pycolmap.Rotation3d:
+    axis = rng.normal(size=3)
+    return pycolmap.Rotation3d(axis / np.linalg.norm(axis) * np.deg2rad(rng.uniform(0, max_deg)))
+
+
+def transform(pose: pycolmap.Rigid3d, X: np.ndarray) -> np.ndarray:
+    return X @ pose.rotation.matrix().T + pose.translation
+
+
+def project(X_cam: np.ndarray) -> np.ndarray:
+    return X_cam[:, :2] / X_cam[:, 2:]
+
+
+def points_in_view(rng: np.random.Generator, n: int) -> np.ndarray:
+    """Camera-frame points inside a 53 degree field of view, depths 3 to 6."""
+    depth = rng.uniform(3, 6, n)
+    return np.column_stack([rng.uniform(-0.45, 0.45, (n, 2)) * depth[:, None], depth])
+
+
+@dataclass
+class TwoView:
+    pose: pycolmap.Rigid3d  # cam2_from_cam1, unit translation
+    X: np.ndarray  # (N, 3) points in camera 1 (= world) coordinates
+    x1: np.ndarray  # (N, 2) normalized image points, noisy
+    x2: np.ndarray  # (N, 2), noisy, outliers replaced by random image points
+    inliers: np.ndarray  # (N,) bool, true correspondences
+
+
+def two_view(seed: int, n: int = 500, outlier_ratio: float = 0.0, noise: float = NOISE) -> TwoView:
+    """Camera 2 one unit away from camera 1, mostly sideways, turned towards the scene."""
+    rng = np.random.default_rng(seed)
+    centre = rng.normal(size=3) * [1, 1, 0.3]
+    centre /= np.linalg.norm(centre)
+    z = np.array([0, 0, 4.5]) - centre
+    z /= np.linalg.norm(z)
+    x = np.cross([0, 1, 0], z)
+    x /= np.linalg.norm(x)
+    R = np.stack([x, np.cross(z, x), z]) @ rotation(rng, 3).matrix()
+    pose = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ centre)
+    X = points_in_view(rng, 3 * n)
+    visible = np.all(np.abs(project(transform(pose, X))) < 0.5, axis=1)
+    X = X[visible][:n]
+    assert len(X) == n
+    x1 = project(X) + rng.normal(0, noise, (n, 2))
+    x2 = project(transform(pose, X)) + rng.normal(0, noise, (n, 2))
+    inliers = np.ones(n, bool)
+    inliers[rng.permutation(n)[:round(outlier_ratio * n)]] = False
+    x2[~inliers] = rng.uniform(-0.5, 0.5, (np.count_nonzero(~inliers), 2))
+    return TwoView(pose, X, x1, x2, inliers)
+
+
+@dataclass
+class OneView:
+    pose: pycolmap.Rigid3d  # cam_from_world
+    X: np.ndarray  # (N, 3) world points
+    x: np.ndarray  # (N, 2) normalized image points, noisy, outliers random
+    inliers: np.ndarray
+
+
+def one_view(seed: int, n: int = 300, outlier_ratio: float = 0.0, noise: float = NOISE) -> OneView:
+    rng = np.random.default_rng(seed)
+    pose = pycolmap.Rigid3d(rotation(rng, 180), rng.normal(size=3) * 2)
+    X_cam = points_in_view(rng, n)
+    X = transform(pose.inverse(), X_cam)
+    x = project(X_cam) + rng.normal(0, noise, (n, 2))
+    inliers = np.ones(n, bool)
+    inliers[rng.permutation(n)[:round(outlier_ratio * n)]] = False
+    x[~inliers] = rng.uniform(-0.5, 0.5, (np.count_nonzero(~inliers), 2))
+    return OneView(pose, X, x, inliers)
+
+
+# ---------------------------------------------------------------- measures
+
+def rotation_error_deg(a: pycolmap.Rigid3d, b: pycolmap.Rigid3d) -> float:
+    return float(np.rad2deg((a.rotation.inverse() * b.rotation).angle()))
+
+
+def angle_deg(u: np.ndarray, v: np.ndarray) -> float:
+    u, v = u / np.linalg.norm(u), v / np.linalg.norm(v)
+    return float(np.rad2deg(np.arctan2(np.linalg.norm(np.cross(u, v)), u @ v)))
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+
+
+def essential(pose: pycolmap.Rigid3d) -> np.ndarray:
+    """[t]x R for cam2_from_cam1, unit Frobenius norm."""
+    E = skew(pose.translation) @ pose.rotation.matrix()
+    return E / np.linalg.norm(E)
+
+
+def same_up_to_sign(A: np.ndarray, B: np.ndarray) -> float:
+    A, B = A / np.linalg.norm(A), B / np.linalg.norm(B)
+    return min(np.abs(A - B).max(), np.abs(A + B).max())
+
+
+def homogeneous(x: np.ndarray) -> np.ndarray:
+    return np.hstack([x, np.ones((len(x), 1))])
+
+
+def sampson(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Sampson distance of each pair, in normalized image units."""
+    X1, X2 = homogeneous(x1), homogeneous(x2)
+    Ex1, Etx2 = X1 @ E.T, X2 @ E
+    c = np.sum(X2 * Ex1, axis=1)
+    return np.abs(c) / np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2)
+
+
+def pixels(x: np.ndarray) -> np.ndarray:
+    return x * FOCAL + SIZE / 2
+
+
+def assert_valid_pose(pose: pycolmap.Rigid3d, unit_translation: bool = False) -> None:
+    R, t = pose.rotation.matrix(), pose.translation
+    assert np.isfinite(R).all() and np.isfinite(t).all()
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-9)
+    assert np.linalg.det(R) > 0
+    if unit_translation:
+        assert np.linalg.norm(t) == pytest.approx(1.0, abs=1e-9)
+
+
+def assert_valid_relative(result: solvers.RelativePoseResult, n: int) -> None:
+    assert_valid_pose(result.cam2_from_cam1, unit_translation=True)
+    assert result.inlier_mask.shape == (n,) and result.inlier_mask.dtype == bool
+    assert result.num_inliers == np.count_nonzero(result.inlier_mask)
+    assert np.isfinite(result.E).all()
+
+
+def assert_valid_absolute(result: solvers.AbsolutePoseResult, n: int) -> None:
+    assert_valid_pose(result.cam_from_world)
+    assert result.inlier_mask.shape == (n,) and result.inlier_mask.dtype == bool
+    assert result.num_inliers == np.count_nonzero(result.inlier_mask)
+
+
+# ---------------------------------------------------------------- accuracy
+
+@pytest.mark.parametrize("method", ["nister", "stewenius"])
+@pytest.mark.parametrize("outlier_ratio", OUTLIER_RATIOS)
+def test_relative_pose_recovers_truth(method, outlier_ratio):
+    scene = two_view(seed=int(outlier_ratio * 100), outlier_ratio=outlier_ratio)
+    result = solvers.relative_pose(scene.x1, scene.x2, max_error=MAX_ERROR, method=method, seed=1)
+    assert_valid_relative(result, len(scene.x1))
+    assert rotation_error_deg(result.cam2_from_cam1, scene.pose) < 0.5
+    assert angle_deg(result.cam2_from_cam1.translation, scene.pose.translation) < 1.0
+    assert np.mean(result.inlier_mask == scene.inliers) > 0.95
+    # E is [t]x R of the returned pose, and the inliers satisfy x2^T E x1 ~ 0.
+    assert same_up_to_sign(result.E, essential(result.cam2_from_cam1)) < 1e-9
+    assert sampson(result.E, scene.x1, scene.x2)[result.inlier_mask].max() < MAX_ERROR
+    algebraic = np.abs(np.sum(homogeneous(scene.x2) * (homogeneous(scene.x1) @ result.E.T), 1))
+    assert algebraic[result.inlier_mask].max() < 5 * MAX_ERROR
+
+
+@pytest.mark.parametrize("method", ["kneip", "gao"])
+@pytest.mark.parametrize("outlier_ratio", OUTLIER_RATIOS)
+def test_absolute_pose_recovers_truth(method, outlier_ratio):
+    scene = one_view(seed=int(outlier_ratio * 100), outlier_ratio=outlier_ratio)
+    result = solvers.absolute_pose(scene.x, scene.X, max_error=MAX_ERROR, method=method, seed=1)
+    assert_valid_absolute(result, len(scene.x))
+    assert rotation_error_deg(result.cam_from_world, scene.pose) < 0.5
+    assert angle_deg(result.cam_from_world.translation, scene.pose.translation) < 1.0
+    centre_error = np.linalg.norm(result.cam_from_world.inverse().translation
+                                  - scene.pose.inverse().translation)
+    assert centre_error < 0.01 * 4.5  # 1 % of the scene's distance
+    assert np.mean(result.inlier_mask == scene.inliers) > 0.95
+
+
+@pytest.mark.parametrize("method", ["nister", "stewenius"])
+def test_relative_pose_agrees_with_pycolmap(method):
+    scene = two_view(seed=7, outlier_ratio=0.3)
+    ours = solvers.relative_pose(scene.x1, scene.x2, max_error=MAX_ERROR, method=method, seed=2)
+    options = pycolmap.RANSACOptions()
+    options.max_error = MAX_ERROR * FOCAL
+    options.random_seed = 2
+    theirs = pycolmap.estimate_essential_matrix(pixels(scene.x1), pixels(scene.x2), CAMERA, CAMERA,
+                                                options)
+    assert rotation_error_deg(ours.cam2_from_cam1, theirs["cam2_from_cam1"]) < 0.2
+    assert angle_deg(ours.cam2_from_cam1.translation, theirs["cam2_from_cam1"].translation) < 0.5
+    assert same_up_to_sign(ours.E, theirs["E"]) < 0.01
+    assert np.mean(ours.inlier_mask == theirs["inlier_mask"]) > 0.98
+
+
+@pytest.mark.parametrize("method", ["kneip", "gao"])
+def test_absolute_pose_agrees_with_pycolmap(method):
+    scene = one_view(seed=7, outlier_ratio=0.3)
+    ours = solvers.absolute_pose(scene.x, scene.X, max_error=MAX_ERROR, method=method, seed=2)
+    options = pycolmap.AbsolutePoseEstimationOptions()
+    options.ransac.max_error = MAX_ERROR * FOCAL
+    options.ransac.random_seed = 2
+    theirs = pycolmap.estimate_absolute_pose(pixels(scene.x), scene.X, CAMERA, options)
+    assert rotation_error_deg(ours.cam_from_world, theirs["cam_from_world"]) < 0.2
+    assert np.linalg.norm(ours.cam_from_world.inverse().translation
+                          - theirs["cam_from_world"].inverse().translation) < 0.02
+    assert np.mean(ours.inlier_mask == theirs["inlier_mask"]) > 0.98
+
+
+@pytest.mark.parametrize("method, min_found", [("nister", 0.9), ("stewenius", 1.0)])
+def test_five_point_finds_true_essential_matrix(method, min_found):
+    """Every solution is an essential matrix fitting the five pairs, and the true one is
+    among them; OpenGV's Nister solver misses it in a few percent of configurations."""
+    found = []
+    for seed in range(20):
+        scene = two_view(seed, n=5, noise=0.0)
+        solutions = solvers.five_point(scene.x1, scene.x2, method=method)
+        assert len(solutions) <= 10
+        for E in solutions:
+            assert np.linalg.norm(E) == pytest.approx(1.0)
+            assert sampson(E, scene.x1, scene.x2).max() < 1e-9
+            EEt = E @ E.T  # the essential-matrix constraint 2 E E^T E = tr(E E^T) E
+            assert np.abs(2 * EEt @ E - np.trace(EEt) * E).max() < 1e-3
+        found.append(min([same_up_to_sign(E, essential(scene.pose)) for E in solutions],
+                         default=np.inf) < 1e-6)
+    assert np.mean(found) >= min_found
+
+
+@pytest.mark.parametrize("method, min_found", [("kneip", 1.0), ("gao", 0.9)])
+def test_p3p_finds_true_pose(method, min_found):
+    """Every solution sees the three points along their rays, and the true pose is among
+    them; OpenGV's Gao solver misses it in a few percent of configurations."""
+    found = []
+    for seed in range(20):
+        scene = one_view(seed, n=3, noise=0.0)
+        solutions = solvers.p3p(scene.x, scene.X, method=method)
+        assert len(solutions) <= 4
+        for pose in solutions:
+            assert_valid_pose(pose)
+            X_cam = transform(pose, scene.X)
+            assert (X_cam[:, 2] > 0).all()
+            np.testing.assert_allclose(project(X_cam), scene.x, atol=1e-3)
+        found.append(any(rotation_error_deg(pose, scene.pose) < 1e-6
+                         and np.abs(pose.translation - scene.pose.translation).max() < 1e-6
+                         for pose in solutions))
+    assert np.mean(found) >= min_found
+
+
+# ---------------------------------------------------------------- triangulation
+
+def test_triangulate_recovers_points_and_flags_bad_ones():
+    scene = two_view(seed=3, n=50, noise=0.0)
+    cam1 = pycolmap.Rigid3d(rotation(np.random.default_rng(0), 30), [0.2, -0.1, 0.3])
+    cam2 = scene.pose * cam1  # world -> cam1 -> cam2
+    X_world = transform(cam1.inverse(), scene.X)
+    rays1 = homogeneous(scene.x1)
+    rays2 = transform(scene.pose, scene.X)  # (N, 3) rays, not normalized
+    points, valid = solvers.triangulate(cam1, cam2, rays1, rays2)
+    np.testing.assert_allclose(points, X_world, atol=1e-9)
+    assert valid.all()
+
+    # A ray pointing away from the point: the point is behind that camera.
+    rays2[:5] *= -1
+    points, valid = solvers.triangulate(cam1, cam2, rays1, rays2)
+    np.testing.assert_allclose(points, X_world, atol=1e-9)
+    assert not valid[:5].any() and valid[5:].all()
+
+    # Far points: rays nearly parallel, below the minimum triangulation angle.
+    far = scene.X * 100
+    rays1, rays2 = far, transform(scene.pose, far)
+    _, valid = solvers.triangulate(cam1, cam2, rays1, rays2, min_angle_deg=1.0)
+    assert not valid.any()
+    _, valid = solvers.triangulate(cam1, cam2, rays1, rays2, min_angle_deg=0.01)
+    assert valid.all()
+
+
+def test_triangulate_tracks_multi_view():
+    rng = np.random.default_rng(4)
+    cams = [pycolmap.Rigid3d(rotation(rng, 5), [-1.5 + v, 0.1 * v, 0]) for v in range(4)]
+    X = points_in_view(rng, 40) + [0, 0, 2]
+    views, point_ids, rays = [], [], []
+    for p in range(len(X)):
+        for v in range(p % 4 + 1):  # tracks of 1 to 4 observations
+            views.append(v)
+            point_ids.append(p)
+            ray = transform(cams[v], X[p:p + 1])[0]
+            rays.append(ray + rng.normal(0, 1e-4, 3) * np.linalg.norm(ray))
+    points, valid = solvers.triangulate_tracks(cams, views, point_ids, np.array(rays))
+    assert points.shape == (len(X), 3) and valid.shape == (len(X),)
+    single = np.arange(len(X)) % 4 == 0
+    assert not valid[single].any() and np.isnan(points[single]).all()
+    assert valid[~single].all()
+    assert np.abs(points[~single] - X[~single]).max() < 0.05
+
+
+# ---------------------------------------------------------------- conventions
+
+def test_conventions_round_trip():
+    """One known pose through every function comes back unchanged."""
+    scene = two_view(seed=11, n=100, noise=0.0)
+    E_true = essential(scene.pose)
+    # x2 = R x1 + t: pycolmap's Rigid3d maps camera 1 into camera 2.
+    np.testing.assert_allclose(project(scene.pose * scene.X), scene.x2, atol=1e-12)
+
+    rel = solvers.relative_pose(scene.x1, scene.x2, max_error=MAX_ERROR, seed=0)
+    np.testing.assert_allclose(rel.cam2_from_cam1.matrix(), scene.pose.matrix(), atol=1e-8)
+    assert same_up_to_sign(rel.E, E_true) < 1e-8
+    assert rel.inlier_mask.all()
+
+    E5 = solvers.five_point(scene.x1[:5], scene.x2[:5])
+    assert min(same_up_to_sign(E, E_true) for E in E5) < 1e-8
+
+    # The same pose as cam_from_world for points in world = camera 1 coordinates.
+    ab = solvers.absolute_pose(scene.x2, scene.X, max_error=MAX_ERROR, seed=0)
+    np.testing.assert_allclose(ab.cam_from_world.matrix(), scene.pose.matrix(), atol=1e-8)
+    poses = solvers.p3p(scene.x2[:3], scene.X[:3])
+    assert min(np.abs(p.matrix() - scene.pose.matrix()).max() for p in poses) < 1e-8
+
+    points, valid = solvers.triangulate(pycolmap.Rigid3d(), scene.pose, scene.x1, scene.x2)
+    np.testing.assert_allclose(points, scene.X, atol=1e-8)
+    assert valid.all()
+
+
+# ---------------------------------------------------------------- reproducibility and input forms
+
+def test_seed_reproducibility():
+    scene = two_view(seed=5, outlier_ratio=0.5)
+    runs = [solvers.relative_pose(scene.x1, scene.x2, max_error=MAX_ERROR, seed=s)
+            for s in (3, 3, 4)]
+    np.testing.assert_array_equal(runs[0].inlier_mask, runs[1].inlier_mask)
+    np.testing.assert_array_equal(runs[0].cam2_from_cam1.matrix(), runs[1].cam2_from_cam1.matrix())
+    assert runs[0].num_iterations == runs[1].num_iterations
+    for run in runs[1:]:  # another seed may differ, but finds the same pose
+        assert rotation_error_deg(run.cam2_from_cam1, runs[0].cam2_from_cam1) < 0.2
+
+    view = one_view(seed=5, outlier_ratio=0.5)
+    runs = [solvers.absolute_pose(view.x, view.X, max_error=MAX_ERROR, seed=s) for s in (3, 3)]
+    np.testing.assert_array_equal(runs[0].inlier_mask, runs[1].inlier_mask)
+    np.testing.assert_array_equal(runs[0].cam_from_world.matrix(), runs[1].cam_from_world.matrix())
+    unseeded = solvers.absolute_pose(view.x, view.X, max_error=MAX_ERROR)
+    assert rotation_error_deg(unseeded.cam_from_world, view.pose) < 0.5
+
+
+def test_normalized_points_and_rays_give_the_same_result():
+    scene = two_view(seed=6, outlier_ratio=0.3)
+    scale = np.random.default_rng(0).uniform(0.5, 3, (len(scene.x1), 1))
+    a = solvers.relative_pose(scene.x1, scene.x2, max_error=MAX_ERROR, seed=9)
+    b = solvers.relative_pose(homogeneous(scene.x1) * scale, homogeneous(scene.x2),
+                              max_error=MAX_ERROR, seed=9)
+    np.testing.assert_array_equal(a.inlier_mask, b.inlier_mask)
+    np.testing.assert_allclose(a.cam2_from_cam1.matrix(), b.cam2_from_cam1.matrix(), atol=1e-9)
+
+    view = one_view(seed=6, outlier_ratio=0.3)
+    a = solvers.absolute_pose(view.x, view.X, max_error=MAX_ERROR, seed=9)
+    b = solvers.absolute_pose(homogeneous(view.x) * 2.5, view.X, max_error=MAX_ERROR, seed=9)
+    np.testing.assert_array_equal(a.inlier_mask, b.inlier_mask)
+    np.testing.assert_allclose(a.cam_from_world.matrix(), b.cam_from_world.matrix(), atol=1e-9)
+
+    points_a, valid_a = solvers.triangulate(pycolmap.Rigid3d(), scene.pose, scene.x1, scene.x2)
+    points_b, valid_b = solvers.triangulate(pycolmap.Rigid3d(), scene.pose,
+                                            homogeneous(scene.x1) * scale, homogeneous(scene.x2))
+    np.testing.assert_allclose(points_a, points_b, atol=1e-9)
+    np.testing.assert_array_equal(valid_a, valid_b)
+
+
+# ---------------------------------------------------------------- bad input
+
+GOOD = two_view(seed=8, n=20)
+GOOD_VIEW = one_view(seed=8, n=20)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: solvers.relative_pose(GOOD.x1[:, :1], GOOD.x2, max_error=1e-3), r"rays1 .*shape"),
+    (lambda: solvers.relative_pose(GOOD.x1, np.zeros((20, 4)), max_error=1e-3), r"rays2 .*shape"),
+    (lambda: solvers.relative_pose(GOOD.x1.ravel(), GOOD.x2, max_error=1e-3), r"rays1 .*2-D"),
+    (lambda: solvers.relative_pose(GOOD.x1, GOOD.x2[:-1], max_error=1e-3), r"differ in length"),
+    (lambda: solvers.relative_pose(GOOD.x1[:4], GOOD.x2[:4], max_error=1e-3), r"at least 5"),
+    (lambda: solvers.relative_pose(np.where(np.eye(20, 2) > 0, np.nan, GOOD.x1), GOOD.x2,
+                                   max_error=1e-3), r"rays1 .*NaN or inf"),
+    (lambda: solvers.relative_pose(GOOD.x1, np.full((20, 2), np.inf), max_error=1e-3),
+     r"rays2 .*NaN or inf"),
+    (lambda: solvers.relative_pose(GOOD.x1, GOOD.x2, max_error=0.0), r"max_error"),
+    (lambda: solvers.relative_pose(GOOD.x1, GOOD.x2, max_error=-1.0), r"max_error"),
+    (lambda: solvers.relative_pose(GOOD.x1, GOOD.x2, max_error=float("nan")), r"max_error"),
+    (lambda: solvers.relative_pose(GOOD.x1, GOOD.x2, max_error=1e-3, method="kneip"),
+     r"unknown method 'kneip'"),
+    (lambda: solvers.relative_pose(np.zeros((20, 3)), GOOD.x2, max_error=1e-3), r"zero-length"),
+    (lambda: solvers.absolute_pose(GOOD_VIEW.x, GOOD_VIEW.X[:, :2], max_error=1e-3),
+     r"points3D .*shape"),
+    (lambda: solvers.absolute_pose(GOOD_VIEW.x[:2], GOOD_VIEW.X[:2], max_error=1e-3),
+     r"at least 3"),
+    (lambda: solvers.absolute_pose(GOOD_VIEW.x, GOOD_VIEW.X[:5], max_error=1e-3),
+     r"differ in length"),
+    (lambda: solvers.absolute_pose(GOOD_VIEW.x, GOOD_VIEW.X * np.inf, max_error=1e-3),
+     r"points3D .*NaN or inf"),
+    (lambda: solvers.absolute_pose(GOOD_VIEW.x, GOOD_VIEW.X, max_error=None), r"max_error"),
+    (lambda: solvers.absolute_pose(GOOD_VIEW.x, GOOD_VIEW.X, max_error=1e-3, method="epnp"),
+     r"unknown method 'epnp'"),
+    (lambda: solvers.absolute_pose([["a", "b"]] * 5, GOOD_VIEW.X[:5], max_error=1e-3),
+     r"rays .*numeric"),
+    (lambda: solvers.five_point(GOOD.x1[:4], GOOD.x2[:4]), r"exactly 5"),
+    (lambda: solvers.five_point(GOOD.x1[:5], GOOD.x2[:5], method="gao"), r"unknown method"),
+    (lambda: solvers.p3p(GOOD_VIEW.x[:4], GOOD_VIEW.X[:4]), r"exactly 3"),
+    (lambda: solvers.p3p(GOOD_VIEW.x[:3], GOOD_VIEW.X[:3], method="nister"), r"unknown method"),
+    (lambda: solvers.triangulate(pycolmap.Rigid3d(), GOOD.pose, GOOD.x1, GOOD.x2[:3]),
+     r"differ in length"),
+    (lambda: solvers.triangulate(pycolmap.Rigid3d(), GOOD.pose, GOOD.x1, GOOD.x2,
+                                 min_angle_deg=float("nan")), r"min_angle_deg"),
+    (lambda: solvers.triangulate_tracks([pycolmap.Rigid3d()], [0, 1], [0, 0], GOOD.x1[:2]),
+     r"view_index out of range"),
+    (lambda: solvers.triangulate_tracks([pycolmap.Rigid3d()] * 2, [0, 1], [0, 0], GOOD.x1[:3]),
+     r"differ in length"),
+])
+def test_bad_input_raises_value_error_naming_the_problem(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()
+
+
+# ---------------------------------------------------------------- degenerate data
+
+def run_guarded(call, check):
+    """Degenerate data: an EstimationError or a valid result, quickly."""
+    start = time.perf_counter()
+    try:
+        check(call())
+    except solvers.EstimationError:
+        pass
+    assert time.perf_counter() - start < 10
+
+
+@pytest.mark.parametrize("method", ["nister", "stewenius"])
+def test_relative_pose_degenerate_data(method):
+    rng = np.random.default_rng(0)
+    n = 100
+    same = np.tile([[0.1, -0.2]], (n, 1))
+    noise1, noise2 = rng.uniform(-0.5, 0.5, (n, 2)), rng.uniform(-0.5, 0.5, (n, 2))
+    cases = [
+        (same, same),  # all points identical
+        (noise1, noise2),  # pure noise
+        (same, noise2),  # all points on the same ray in camera 1
+        (noise1, noise1),  # no motion at all
+        (noise1, noise1 + [0.01, 0]),  # pure image translation (rotation about y)
+    ]
+    for x1, x2 in cases:
+        run_guarded(lambda: solvers.relative_pose(x1, x2, max_error=MAX_ERROR, method=method,
+                                                  seed=0),
+                    lambda r: assert_valid_relative(r, n))
+
+
+@pytest.mark.parametrize("method", ["kneip", "gao"])
+def test_absolute_pose_degenerate_data(method):
+    rng = np.random.default_rng(0)
+    n = 100
+    view = one_view(seed=0, n=n)
+    on_one_ray = np.outer(rng.uniform(2, 5, n), [0.1, 0.2, 1.0])
+    cases = [
+        (np.tile(view.x[:1], (n, 1)), np.tile(view.X[:1], (n, 1))),  # one point, repeated
+        (rng.uniform(-0.5, 0.5, (n, 2)), rng.normal(size=(n, 3)) * 5),  # pure noise
+        (np.tile([[0.1, 0.2]], (n, 1)), on_one_ray),  # all points on one ray
+        (view.x, np.tile(view.X.mean(0), (n, 1))),  # all rays to one point
+        (view.x, view.X * [1, 1, 0]),  # coplanar points
+    ]
+    for x, X in cases:
+        run_guarded(lambda: solvers.absolute_pose(x, X, max_error=MAX_ERROR, method=method, seed=0),
+                    lambda r: assert_valid_absolute(r, n))
+
+
+def test_triangulate_degenerate_data():
+    scene = two_view(seed=9, n=30, noise=0.0)
+    # Both cameras in the same place: no parallax, no valid point, no crash.
+    points, valid = solvers.triangulate(scene.pose, scene.pose, scene.x2, scene.x2)
+    assert points.shape == (30, 3) and not valid.any()
+    # The same ray from both cameras: a point at infinity, or one behind a camera.
+    points, valid = solvers.triangulate(pycolmap.Rigid3d(), scene.pose, scene.x1,
+                                        np.tile([[0.0, 0.0]], (30, 1)))
+    assert points.shape == (30, 3)
+    assert (~valid | np.isfinite(points).all(axis=1)).all()
+
+
+# ---------------------------------------------------------------- fuzz
+
+SPECIAL = [np.nan, np.inf, -np.inf, 0.0, 1e300, -1e300, 1e-300, 1e30]
+
+
+def sometimes(draw, one_in: int) -> bool:
+    # sampled_from rather than integers or booleans: hypothesis favours 0 and False.
+    return draw(st.sampled_from([False] * (one_in - 1) + [True]))
+
+
+@st.composite
+def corrupted(draw, base_a: np.ndarray, base_b: np.ndarray):
+    """Two arrays from (mostly valid) base arrays with some of: awkward values, duplicated
+    rows, zero rows, another length, another number of columns, another dtype."""
+    arrays = [base_a.copy(), base_b.copy()]
+    for k in range(2):
+        array = arrays[k]
+        if len(array) and sometimes(draw, 3):  # awkward values at a few places
+            for _ in range(draw(st.integers(1, 3))):
+                index = (draw(st.integers(0, len(array) - 1)),
+                         draw(st.integers(0, array.shape[1] - 1)))
+                array[index] = draw(st.sampled_from(SPECIAL))
+        if len(array) > 1 and sometimes(draw, 6):  # all rows the same
+            array[1:] = array[0]
+        if len(array) and sometimes(draw, 8):  # a zero row
+            array[draw(st.integers(0, len(array) - 1))] = 0
+        if sometimes(draw, 8):  # another length
+            array = array[:draw(st.integers(0, len(array)))]
+        if sometimes(draw, 8):  # another number of columns, 1 to 4
+            columns = draw(st.integers(1, 4))
+            array = np.hstack([array, np.ones((len(array), 4))])[:, :columns]
+        dtype = draw(st.sampled_from(["float64"] * 5 + ["float32", "int64", "object"]))
+        if dtype == "object":
+            array = np.full(array.shape, draw(st.sampled_from(["x", None, "1.5"])), dtype=object)
+        elif dtype != "float64":
+            with np.errstate(all="ignore"):
+                array = np.nan_to_num(array).astype(dtype)
+        arrays[k] = array
+    return arrays
+
+
+@st.composite
+def relative_inputs(draw):
+    n = draw(st.integers(0, 300))
+    if not sometimes(draw, 3):
+        scene = two_view(draw(st.integers(0, 1000)), n=max(n, 1),
+                         outlier_ratio=draw(st.sampled_from([0.0, 0.5, 1.0])))
+        base = scene.x1[:n], scene.x2[:n]
+    else:
+        rng = np.random.default_rng(draw(st.integers(0, 1000)))
+        base = rng.uniform(-1, 1, (n, 2)), rng.uniform(-1, 1, (n, 3))
+    return draw(corrupted(*base))
+
+
+@st.composite
+def absolute_inputs(draw):
+    n = draw(st.integers(0, 300))
+    if not sometimes(draw, 3):
+        view = one_view(draw(st.integers(0, 1000)), n=max(n, 1),
+                        outlier_ratio=draw(st.sampled_from([0.0, 0.5, 1.0])))
+        base = view.x[:n], view.X[:n]
+    else:
+        rng = np.random.default_rng(draw(st.integers(0, 1000)))
+        base = rng.uniform(-1, 1, (n, 2)), rng.normal(size=(n, 3)) * 5
+    return draw(corrupted(*base))
+
+
+def check_or_expected_error(call, check):
+    try:
+        result = call()
+    except (ValueError, solvers.EstimationError):
+        return
+    check(result)
+
+
+FUZZ = settings(max_examples=80, deadline=None, suppress_health_check=list(HealthCheck))
+
+
+@FUZZ
+@given(inputs=relative_inputs(), seed=st.integers(0, 2**64 - 1))
+def test_fuzz_relative_pose(inputs, seed):
+    a, b = inputs
+    check_or_expected_error(
+        lambda: solvers.relative_pose(a, b, max_error=MAX_ERROR, max_iterations=500, seed=seed),
+        lambda r: assert_valid_relative(r, len(a)))
+
+
+@FUZZ
+@given(inputs=absolute_inputs(), seed=st.integers(0, 2**64 - 1))
+def test_fuzz_absolute_pose(inputs, seed):
+    a, X = inputs
+    check_or_expected_error(
+        lambda: solvers.absolute_pose(a, X, max_error=MAX_ERROR, max_iterations=500, seed=seed),
+        lambda r: assert_valid_absolute(r, len(a)))
+
+
+@FUZZ
+@given(inputs=relative_inputs())
+def test_fuzz_triangulate(inputs):
+    a, b = inputs
+
+    def check(result):
+        points, valid = result
+        assert points.shape == (len(a), 3) and valid.shape == (len(a),)
+        assert np.isfinite(points[valid]).all()
+
+    pose = two_view(0, n=1).pose
+    check_or_expected_error(lambda: solvers.triangulate(pycolmap.Rigid3d(), pose, a, b), check)
