@@ -153,13 +153,13 @@ def opencv_absolute(flag):
 
 
 RELATIVE = {
+    "ours (5-point Stewenius, OpenGV; default)": ours_relative("stewenius"),
     "ours (5-point Nister, OpenGV)": ours_relative("nister"),
-    "ours (5-point Stewenius, OpenGV)": ours_relative("stewenius"),
     "pycolmap.estimate_essential_matrix": pycolmap_relative,
     "cv2.findEssentialMat + recoverPose": opencv_relative,
 }
 ABSOLUTE = {
-    "ours (P3P Kneip, OpenGV)": ours_absolute("kneip"),
+    "ours (P3P Kneip, OpenGV; default)": ours_absolute("kneip"),
     "ours (P3P Gao, OpenGV)": ours_absolute("gao"),
     "pycolmap.estimate_absolute_pose": pycolmap_absolute,
     "cv2.solvePnPRansac P3P": opencv_absolute(cv2.SOLVEPNP_P3P),

@@ -129,15 +129,19 @@ RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
   result.num_iterations = iteration;
   if (static_cast<int>(best_inliers.size()) < kSampleSize) return result;
 
-  // Final refinement on all inliers, kept only where it does not lose support.
-  for (int round = 0; round < 2; ++round) {
+  // Final least-squares refinement on the inliers, then on the inliers of the refined
+  // model, until they stay the same. Kept even where it raises the MSAC score a little
+  // (inliers near the threshold cross it): a least-squares fit of the inliers is the
+  // more accurate estimate, and the descent cannot leave the RANSAC model's basin.
+  for (int round = 0; round < 3; ++round) {
     Model refined = result.model;
     if (!estimator.refine(best_inliers, &refined)) break;
-    const double refined_score = score_model(estimator, refined, max_sq_error);
-    if (refined_score > best_score) break;
-    best_score = refined_score;
     result.model = refined;
-    find_inliers(estimator, refined, max_sq_error, &best_inliers);
+    std::vector<int> inliers;
+    find_inliers(estimator, refined, max_sq_error, &inliers);
+    const bool unchanged = inliers == best_inliers;
+    best_inliers.swap(inliers);
+    if (unchanged || static_cast<int>(best_inliers.size()) < kSampleSize) break;
   }
   result.success = true;
   result.num_inliers = static_cast<int>(best_inliers.size());

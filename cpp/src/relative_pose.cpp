@@ -23,8 +23,9 @@ Eigen::Matrix<double, 9, 4> epipolar_null_space(const bearingVectors_t& rays1,
     for (int r = 0; r < 3; ++r) constraints.col(k).segment<3>(3 * r) = f1[r] * f2;
   }
   const Eigen::HouseholderQR<Eigen::Matrix<double, 9, 5>> qr(constraints);
-  const Eigen::Matrix<double, 9, 9> Q = qr.householderQ();
-  return Q.rightCols<4>();
+  Eigen::Matrix<double, 9, 4> last_columns = Eigen::Matrix<double, 9, 4>::Zero();
+  last_columns.bottomRows<4>().setIdentity();
+  return qr.householderQ() * last_columns;  // Q's last 4 columns: orthogonal to the constraints
 }
 
 // Whether a unit-norm E satisfies the essential-matrix constraint 2 E E^T E = tr(E E^T) E.
