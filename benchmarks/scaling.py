@@ -12,7 +12,7 @@ peak resident memory from os.wait4 (ru_maxrss), and the child reports the time o
 mapping call and the pose errors against the true poses. "python + imports" is the
 peak of a child that only imports what the mappers import: the floor under both.
 
-    python benchmarks/scaling.py [--sizes 50 200 [1000]] [--points_per_image 500]
+    python benchmarks/scaling.py [--sizes 50 200 [1000]] [--keypoints_per_image 1000]
         [--mappers ours,colmap_incremental] [--seed 0] [--work_dir DIR] [--markdown BENCHMARKS.md]
 """
 
@@ -69,15 +69,24 @@ def run_child(argv: list[str]) -> tuple[int, float]:
     return process.returncode, usage.ru_maxrss / 1024  # Linux: KiB
 
 
-def make_database(folder: Path, size: int, points_per_image: int, seed: int) -> dict:
+def make_database(folder: Path, size: int, keypoints_per_image: int, seed: int) -> dict:
+    """The synthetic database, placeholder images and ground truth of `size` views.
+
+    The street's ends make a larger share of a short scene, so the number of scene points
+    is set from a few views' counts to give about `keypoints_per_image` at every size."""
     import cv2
     import numpy as np
 
     from colmap_ext.synthetic import scene_points, trajectory_scene, write_ground_truth, write_synthetic_database
+    from colmap_ext.synthetic.database import observe
 
     start = time.perf_counter()
     scene = trajectory_scene(num_images=size, seed=seed)
-    points = scene_points(scene, points_per_image * size, seed=seed)
+    probe_size = keypoints_per_image * size
+    probe = scene_points(scene, probe_size, seed=seed)
+    views = np.unique(np.linspace(0, size - 1, min(size, 12)).astype(int))
+    seen = np.mean([len(observe(scene, i, probe).point_ids) for i in views])
+    points = scene_points(scene, max(1, round(probe_size * keypoints_per_image / seen)), seed=seed)
     truth = write_synthetic_database(folder / "database.db", scene, points, noise_px=0.5,
                                      outlier_ratio=0.2, seed=seed, two_view_geometries=True)
     (folder / "images").mkdir()
@@ -123,8 +132,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sizes", type=int, nargs="+", default=[50, 200],
                         help="numbers of images (1000 is opt-in: it takes long)")
-    parser.add_argument("--points_per_image", type=int, default=500,
-                        help="scene points per image (about twice the keypoints per image)")
+    parser.add_argument("--keypoints_per_image", type=int, default=1000,
+                        help="about this many keypoints per image, at every size")
     parser.add_argument("--mappers", default=",".join(MAPPERS))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work_dir", default=None, help="keep the databases and models here")
@@ -166,7 +175,7 @@ def main(argv: list[str] | None = None) -> int:
             shutil.rmtree(folder, ignore_errors=True)
             folder.mkdir(parents=True)
             print(f"\n=== {size} images: writing the synthetic database ...", file=sys.stderr, flush=True)
-            stats = make_database(folder, size, args.points_per_image, args.seed)
+            stats = make_database(folder, size, args.keypoints_per_image, args.seed)
             print(f"    {stats['keypoints_per_image']:.0f} keypoints per image, "
                   f"{stats['verified_pairs']} verified pairs ({stats['seconds']:.1f} s)",
                   file=sys.stderr, flush=True)
@@ -198,7 +207,7 @@ def main(argv: list[str] | None = None) -> int:
     text = table(rows)
     notes = (f"Peak memory is the child process's maximum resident set size; python + imports "
              f"alone take {baseline_mib:.0f} MiB. Time: the mapping call (database read to model "
-             f"written). Scene: `trajectory_scene`, {args.points_per_image} points per image, "
+             f"written). Scene: `trajectory_scene`, about {args.keypoints_per_image} keypoints per image, "
              f"0.5 px noise, 20 % wrong matches, seed {args.seed}.")
     print()
     print(machine)

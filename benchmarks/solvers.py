@@ -12,8 +12,10 @@ every method sees the same problems. Prints a Markdown table.
 from __future__ import annotations
 
 import argparse
+import inspect
 import os
 import platform
+import subprocess
 import time
 from dataclasses import dataclass
 from importlib.metadata import version
@@ -208,6 +210,15 @@ def benchmark(methods: dict, make_problem, relative: bool, sizes, outlier_ratios
     return rows
 
 
+def opengv_version() -> str:
+    try:
+        out = subprocess.run(["dpkg-query", "-W", "-f", "${Version}", "libopengv-dev"],
+                             capture_output=True, text=True, check=True).stdout
+    except (OSError, subprocess.CalledProcessError):
+        return "unknown version"
+    return out or "unknown version"
+
+
 def cpu_model() -> str:
     try:
         with open("/proc/cpuinfo") as f:
@@ -234,21 +245,29 @@ def main() -> None:
         for method in methods.values():
             run_one(method, make(warm, 100, 0.2), rel)
 
-    print(f"Machine: {cpu_model()}, {os.cpu_count()} cores, load average "
-          f"{os.getloadavg()[0]:.1f}; Python {platform.python_version()}, "
-          f"colmap-ext {version('colmap-ext')}, pycolmap {pycolmap.__version__}, "
-          f"OpenCV {cv2.__version__}, NumPy {np.__version__}.")
+    ours = inspect.signature(solvers.relative_pose).parameters
+    essential = pycolmap.RANSACOptions()
+    pnp = pycolmap.AbsolutePoseEstimationOptions().ransac
+    print(f"Machine: {cpu_model()}, {os.cpu_count()} cores (load average "
+          f"{os.getloadavg()[0]:.1f} at the start); Python {platform.python_version()}, "
+          f"colmap-ext {version('colmap-ext')} (OpenGV {opengv_version()}), "
+          f"pycolmap {pycolmap.__version__}, OpenCV {cv2.__version__}, NumPy {np.__version__}.\n")
     print(f"Inputs: f = {FOCAL:.0f} px, {SIZE}x{SIZE} images, {NOISE_PX} px Gaussian noise, "
-          f"outliers uniform over the image, {args.problems} random problems per row; "
-          f"threshold {THRESHOLD_PX} px for every method, every other RANSAC setting at the "
-          "library's default (ours: confidence 0.9999, at most 10000 iterations; pycolmap: "
-          "RANSACOptions() / AbsolutePoseEstimationOptions(); OpenCV: findEssentialMat "
-          "prob 0.999, 1000 iterations; solvePnPRansac 100 iterations, confidence 0.99). "
-          "Time: median wall time per call from pixel coordinates (ours includes the "
-          "conversion to normalized coordinates); errors: median over the problems, "
-          "rotation in degrees, translation as the direction error in degrees (relative) "
-          "or the camera-centre distance in scene units, scene depth 4 to 8 (absolute); "
-          "'failed' counts calls without a result.")
+          f"scene depth 4 to 8, outliers uniform over the image, {args.problems} random "
+          f"problems per row (seed {args.seed}), the same problems for every method. "
+          f"Threshold {THRESHOLD_PX} px for every method; every other RANSAC setting is the "
+          f"library's default: ours confidence {ours['confidence'].default}, "
+          f"{ours['min_iterations'].default} to {ours['max_iterations'].default} iterations; "
+          f"pycolmap confidence {essential.confidence}, {essential.min_num_trials} to "
+          f"{essential.max_num_trials} trials and {essential.dyn_num_trials_multiplier}x the "
+          f"confidence-based count (essential matrix), confidence {pnp.confidence}, "
+          f"{pnp.min_num_trials} to {pnp.max_num_trials} trials (absolute pose); OpenCV "
+          "findEssentialMat prob 0.999, 1000 iterations, solvePnPRansac 100 iterations, "
+          "confidence 0.99. Time: median wall time per call, from pixel coordinates (ours "
+          "includes their conversion to normalized coordinates). Errors: "
+          "median over the problems; rotation in degrees; translation as the angle to the "
+          "true direction in degrees (relative pose) or as the camera-centre distance in "
+          "scene units (absolute pose). 'failed': calls without a result.")
     header = ["| N | outliers | method | time (ms) | pycolmap time / this | rotation err (deg) "
               "| {} | failed |", "|---|---|---|---|---|---|---|---|"]
     print("\n### Relative pose (essential matrix)\n")

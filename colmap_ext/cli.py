@@ -22,6 +22,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
                     "workspace out: features, matching, verification and the mapper."),
     "evaluate": ("colmap_ext.evaluate", "Measure a model's poses against ground truth "
                  "(the paper's R_err, T_err, C_err)."),
+    "compare": ("colmap_ext.compare", "Run our mapper and COLMAP's on copies of one database "
+                "and compare them (with ground truth: their errors)."),
     "demo": ("colmap_ext.demo", "Render a synthetic ring scene, reconstruct it and "
              "measure the result."),
 }

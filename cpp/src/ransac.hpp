@@ -133,7 +133,7 @@ RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
   // model, until they stay the same. Kept even where it raises the MSAC score a little
   // (inliers near the threshold cross it): a least-squares fit of the inliers is the
   // more accurate estimate, and the descent cannot leave the RANSAC model's basin.
-  for (int round = 0; round < 3; ++round) {
+  for (int round = 0; round < 10; ++round) {
     Model refined = result.model;
     if (!estimator.refine(best_inliers, &refined)) break;
     result.model = refined;
