@@ -44,7 +44,9 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
+from colmap_ext.database import check_database_file
 from colmap_ext.errors import UserError
+from colmap_ext.features import quiet_colmap_logs
 from colmap_ext.evaluate import MEASURES, evaluate, summary_key
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper import MapperOptions
@@ -218,7 +220,7 @@ def _run_colmap_incremental(database_path: Path, image_path: Path, output_path: 
 
     staging = Path(tempfile.mkdtemp(prefix=".colmap-ext-incremental-", dir=database_path.parent))
     try:
-        with _colmap_quiet(), timing():
+        with quiet_colmap_logs(), timing():
             reconstructions = pycolmap.incremental_mapping(
                 database_path, image_path, staging, options,
                 initial_image_pair_callback=advance(2), next_image_callback=advance(1))
@@ -235,22 +237,11 @@ def _run_colmap_global(database_path: Path, image_path: Path, output_path: Path,
     options = colmap_global_options(seed, num_threads)
     staging = Path(tempfile.mkdtemp(prefix=".colmap-ext-global-", dir=database_path.parent))
     try:
-        with _colmap_quiet(), timing():
+        with quiet_colmap_logs(), timing():
             reconstructions = pycolmap.global_mapping(database_path, image_path, staging, options)
         return _write_largest_first(reconstructions, output_path)
     finally:
         shutil.rmtree(staging, ignore_errors=True)
-
-
-@contextmanager
-def _colmap_quiet() -> Iterator[None]:
-    """COLMAP's log at WARNING and above only, so the progress lines stay readable."""
-    previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(previous, int(pycolmap.logging.Level.WARNING))
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = previous
 
 
 @contextmanager
@@ -291,15 +282,7 @@ def check_inputs(database_path: Path, image_path: Path, output_path: Path,
                  ground_truth: str | os.PathLike | None, mappers: list[str],
                  overwrite: bool) -> GroundTruth | None:
     """The checks that need no copy of the database; returns the ground truth."""
-    if not database_path.is_file():
-        raise UserError(f"database not found: {database_path}")
-    try:
-        with open(database_path, "rb") as f:
-            header = f.read(16)
-    except OSError as exc:
-        raise UserError(f"cannot read database {database_path}: {exc.strerror}") from None
-    if header != b"SQLite format 3\x00":
-        raise UserError(f"not an SQLite database: {database_path}")
+    check_database_file(database_path)
     if not image_path.is_dir():
         raise UserError(f"image path not found: {image_path}")
     truth = read_ground_truth(ground_truth) if ground_truth is not None else None
@@ -499,7 +482,7 @@ def model_distances(models: dict[str, pycolmap.Reconstruction], order: list[str]
         if name == reference:
             continue
         try:
-            with _colmap_quiet(), _no_native_stdout():
+            with quiet_colmap_logs(), _no_native_stdout():
                 comparison = pycolmap.compare_reconstructions(models[name], ref)
         except (RuntimeError, ValueError) as exc:
             comparison, failure = None, str(exc).strip().splitlines()[0]

@@ -37,7 +37,8 @@ class DatabaseContents:
     raw_matches: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
 
 
-def _check_file(path: Path) -> None:
+def check_database_file(path: Path) -> None:
+    """A readable SQLite file, checked from its header without opening it as a database."""
     if path.is_dir():
         raise UserError(f"database path is a folder, not a file: {path}")
     if not path.is_file():
@@ -96,7 +97,7 @@ def _check_tables(copy: Path, path: Path) -> None:
 def read_database(path: str | Path) -> DatabaseContents:
     """Cameras, images with keypoints and descriptors, and matches, from a copy of `path`."""
     path = Path(path)
-    _check_file(path)
+    check_database_file(path)
     with tempfile.TemporaryDirectory(prefix="colmap-ext-db-") as tmp:
         copy = Path(tmp) / "database.db"
         _copy_database(path, copy)

@@ -15,7 +15,6 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
-from colmap_ext import evaluate as evaluate_module
 from colmap_ext.errors import UserError
 from colmap_ext.evaluate import (
     add_arguments,

@@ -6,7 +6,6 @@ points of the problem, adjusted, and the refined poses and points copied back.
 
 from __future__ import annotations
 
-import numpy as np
 import pycolmap
 
 from colmap_ext.mapper.model import Model

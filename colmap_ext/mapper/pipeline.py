@@ -111,7 +111,6 @@ class IncrementalMapper:
             -shared.get(o, 0), -verified.get(o, 0), -raw.get(o, 0)))[:limit]
 
     def _register_next(self) -> bool:
-        options = self.options
         for image_id in self._candidates()[:MAX_CANDIDATES_PER_ROUND]:
             with self.timer("registration"):
                 registered = self._register(image_id)
