@@ -487,7 +487,8 @@ def model_distances(models: dict[str, pycolmap.Reconstruction], order: list[str]
         except (RuntimeError, ValueError) as exc:
             comparison, failure = None, str(exc).strip().splitlines()[0]
         else:
-            failure = "the models could not be aligned (too few common images or points)"
+            failure = ("compare_reconstructions found no alignment (too few common images or "
+                       "points, or poses too far apart)")
         if comparison is None or not comparison["errors"]:
             result["mappers"][name] = {"error": failure}
             continue
