@@ -44,7 +44,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from colmap_ext.database import check_database_file
+from colmap_ext.database import check_database_file, copy_database
 from colmap_ext.errors import UserError
 from colmap_ext.features import quiet_colmap_logs
 from colmap_ext.evaluate import MEASURES, evaluate, summary_key
@@ -297,18 +297,6 @@ def check_inputs(database_path: Path, image_path: Path, output_path: Path,
             raise UserError(f"{output_path / taken[0] / '0'} already holds a model; pass "
                             "--overwrite to replace it")
     return truth
-
-
-def copy_database(database_path: Path, copy: Path) -> None:
-    """Copy a database file and its write-ahead log, if any, as bytes: even a read-only
-    SQLite connection leaves -wal/-shm files beside a WAL-mode database."""
-    try:
-        shutil.copyfile(database_path, copy)
-        wal = database_path.with_name(f"{database_path.name}-wal")
-        if wal.is_file():
-            shutil.copyfile(wal, copy.with_name(f"{copy.name}-wal"))
-    except OSError as exc:
-        raise UserError(f"cannot copy database {database_path}: {exc.strerror or exc}") from None
 
 
 def read_image_names(copy: Path, database_path: Path) -> list[str]:

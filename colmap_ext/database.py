@@ -52,7 +52,7 @@ def check_database_file(path: Path) -> None:
         raise UserError(f"not an SQLite database: {path}")
 
 
-def _copy_database(path: Path, copy: Path) -> None:
+def copy_database(path: Path, copy: Path) -> None:
     """Copy the file and its write-ahead log, if any (changes not yet folded into the file).
 
     Even a read-only SQLite connection leaves `-wal`/`-shm` files beside a WAL-mode
@@ -100,7 +100,7 @@ def read_database(path: str | Path) -> DatabaseContents:
     check_database_file(path)
     with tempfile.TemporaryDirectory(prefix="colmap-ext-db-") as tmp:
         copy = Path(tmp) / "database.db"
-        _copy_database(path, copy)
+        copy_database(path, copy)
         _check_tables(copy, path)
         try:
             db = pycolmap.Database.open(copy)

@@ -275,15 +275,21 @@ def check_new_database(database_path: Path) -> None:
                             "extract into a new database")
 
 
+def image_ids(db: pycolmap.Database, names: Sequence[str], context: str = "") -> dict[str, int]:
+    """Image ids by name; an image COLMAP skipped is an error naming it."""
+    ids = {image.name: image.image_id for image in db.read_all_images()}
+    missing = [name for name in names if name not in ids]
+    if missing:
+        raise UserError(f"COLMAP could not extract features from {missing[0]}{context}"
+                        + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+    return ids
+
+
 def keypoint_counts(database_path: str | os.PathLike, names: Sequence[str]) -> dict[str, int]:
     """Keypoints per image name; an image COLMAP skipped is an error naming it."""
     db = pycolmap.Database.open(database_path)
     try:
-        ids = {image.name: image.image_id for image in db.read_all_images()}
-        missing = [name for name in names if name not in ids]
-        if missing:
-            raise UserError(f"COLMAP could not extract features from {missing[0]}"
-                            + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+        ids = image_ids(db, names)
         return {name: db.num_keypoints_for_image(ids[name]) for name in names}
     finally:
         db.close()
@@ -325,11 +331,7 @@ def extract_to_memory(image_path: str | os.PathLike, names: list[str],
                                       device=pycolmap.Device.cpu)
         db = pycolmap.Database.open(database_path)
         try:
-            ids = {image.name: image.image_id for image in db.read_all_images()}
-            missing = [name for name in names if name not in ids]
-            if missing:
-                raise UserError(f"COLMAP could not extract features from {missing[0]} "
-                                f"again (peak threshold {peak_threshold:g})")
+            ids = image_ids(db, names, f" again (peak threshold {peak_threshold:g})")
             return {name: (db.read_keypoints(ids[name]), db.read_descriptors(ids[name]))
                     for name in names}
         finally:
