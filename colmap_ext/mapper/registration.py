@@ -40,9 +40,6 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
         if len(other_kps) < 2 or len(queries) == 0:
             continue
         index, angles = nearest_descriptors(queries, model.descriptors[other_id][other_kps], 2)
-        order = np.argsort(angles, axis=1)
-        index = np.take_along_axis(index, order, axis=1)
-        angles = np.take_along_axis(angles, order, axis=1)
         ok = (angles[:, 0] <= options.max_descriptor_distance) & \
              (angles[:, 0] < MAX_RATIO * angles[:, 1])
         kps.append(np.flatnonzero(ok))
