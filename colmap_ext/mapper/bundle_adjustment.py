@@ -14,7 +14,8 @@ from colmap_ext.mapper.options import MapperOptions
 
 def to_reconstruction(model: Model, image_ids: list[int],
                       point_ids: list[int]) -> pycolmap.Reconstruction:
-    """A reconstruction of the given registered images and points (ids kept)."""
+    """A reconstruction of the given registered images and points (ids kept); every
+    image observing one of the points must be among `image_ids`."""
     reconstruction = pycolmap.Reconstruction()
     for camera_id in sorted({model.db.images[i].camera_id for i in image_ids}):
         reconstruction.add_camera_with_trivial_rig(model.cameras[camera_id])
@@ -23,14 +24,12 @@ def to_reconstruction(model: Model, image_ids: list[int],
         image = pycolmap.Image(name=features.name, keypoints=features.keypoints,
                                camera_id=features.camera_id, image_id=image_id)
         reconstruction.add_image_with_trivial_frame(image, model.poses[image_id])
-    included = set(image_ids)
     for point_id in point_ids:
         track = pycolmap.Track()
         for image_id, kp in model.tracks[point_id].items():
-            if image_id in included:
-                track.add_element(image_id, kp)
-        reconstruction.add_point3D_with_id(
-            point_id, pycolmap.Point3D(xyz=model.xyz[point_id], track=track))
+            track.add_element(image_id, kp)
+        reconstruction.add_point3D_with_id(point_id, pycolmap.Point3D(xyz=model.xyz[point_id],
+                                                                      track=track))
     return reconstruction
 
 

@@ -48,13 +48,14 @@ def max_triangulation_angles_deg(model: Model, point_ids: list[int]) -> np.ndarr
     """The widest angle between two rays of each point's track (0 for single rays)."""
     if not point_ids:
         return np.zeros(0)
-    centres = {image_id: model.centre(image_id) for image_id in model.poses}
+    image_index = {image_id: k for k, image_id in enumerate(model.poses)}
+    centres = np.array([model.centre(image_id) for image_id in model.poses])
     lengths = np.array([len(model.tracks[p]) for p in point_ids])
+    observed = np.array([image_index[i] for p in point_ids for i in model.tracks[p]], np.int64)
+    rows = np.repeat(np.arange(len(point_ids)), lengths)
+    columns = np.arange(len(rows)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
     rays = np.full((len(point_ids), lengths.max(), 3), np.nan)
-    for row, point_id in enumerate(point_ids):
-        track_centres = [centres[image_id] for image_id in model.tracks[point_id]]
-        if track_centres:
-            rays[row, :len(track_centres)] = model.xyz[point_id] - np.array(track_centres)
+    rays[rows, columns] = model.xyz[np.repeat(point_ids, lengths)] - centres[observed]
     rays /= np.linalg.norm(rays, axis=2, keepdims=True)
     cosines = np.nan_to_num(np.einsum("pid,pjd->pij", rays, rays), nan=1.0)
     return np.degrees(np.arccos(np.clip(cosines.min(axis=(1, 2)), -1.0, 1.0)))
