@@ -663,7 +663,7 @@ def _run_interrupted(env, args):
         while "registered:" not in "".join(stderr) and process.poll() is None \
                 and time.monotonic() < deadline:
             time.sleep(0.05)
-        time.sleep(0.5)
+        time.sleep(0.05)
         running = process.poll() is None
         process.send_signal(signal.SIGINT)
         process.wait(timeout=60)
