@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
@@ -381,11 +380,9 @@ def test_plot_unknown_format_is_a_user_error(tmp_path: Path) -> None:
 # --- the real set -------------------------------------------------------------------------
 
 
-def test_temple_sparse_ring_ground_truth_model_has_zero_errors(tmp_path: Path) -> None:
-    data = os.environ.get("COLMAP_EXT_DATA")
-    if not data:
-        pytest.skip("COLMAP_EXT_DATA is not set (point it at the folder holding templeSparseRing/)")
-    par = Path(data) / "templeSparseRing" / "templeSR_par.txt"
+def test_temple_sparse_ring_ground_truth_model_has_zero_errors(tmp_path: Path,
+                                                               real_data: Path) -> None:
+    par = real_data / "templeSparseRing" / "templeSR_par.txt"
     gt = read_ground_truth(par)
     assert len(gt.poses) == 16 and gt.cameras["templeSR0001.png"].width == 640
     model_path = tmp_path / "temple"

@@ -4,7 +4,6 @@ output layout, and the user's files left as they were."""
 from __future__ import annotations
 
 import hashlib
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -19,10 +18,6 @@ from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper import MapperOptions, run
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
 from colmap_ext.synthetic.scene import ring_scene
-
-DATA = os.environ.get("COLMAP_EXT_DATA")
-needs_data = pytest.mark.skipif(not DATA, reason="COLMAP_EXT_DATA is not set: no real data sets")
-
 
 def sha256(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
@@ -129,12 +124,12 @@ def test_bad_input_is_one_clear_line(synthetic, tmp_path, case):
 
 
 @pytest.fixture(scope="module")
-def real_databases(tmp_path_factory):
+def real_databases(tmp_path_factory, real_data):
     """pycolmap default SIFT + exhaustive matching, intrinsics from the ground truth."""
     folder = tmp_path_factory.mktemp("real")
     databases = {}
     for name in ("templeSparseRing", "dinoSparseRing"):
-        images = Path(DATA) / name
+        images = real_data / name
         truth = read_ground_truth(images)
         camera = next(iter(truth.cameras.values()))
         reader = pycolmap.ImageReaderOptions()
@@ -153,7 +148,6 @@ def real_databases(tmp_path_factory):
     return databases
 
 
-@needs_data
 def test_temple_sparse_ring(real_databases, tmp_path):
     database, images, truth = real_databases["templeSparseRing"]
     reconstructions = run(database, images, tmp_path, MapperOptions(seed=0), progress=False)
@@ -165,14 +159,13 @@ def test_temple_sparse_ring(real_databases, tmp_path):
     assert report["C_err_max"] < 0.02
 
 
-@needs_data
 def test_dino_sparse_ring(real_databases, tmp_path):
     database, images, truth = real_databases["dinoSparseRing"]
     reconstructions = run(database, images, tmp_path, MapperOptions(seed=0), progress=False)
     report = evaluate(reconstructions[0], truth)
     # COLMAP 4.2.1's incremental mapper registers 6 of 16 here, R_err max 0.65 deg. With
     # ~240 keypoints an image, no stored pair links images 1-5 and 14-16 to 7-13 (image 6
-    # has none). Our largest model holds 1-5, 15, 16; image 5 registers on 20 of 29
-    # correspondences and ends 2.0 deg off (R_err max 1.99; the other model's 0.33).
+    # has none). Our largest model holds 1-5, 15, 16; image 5 registers on about 20 P3P
+    # inliers and ends 2.0 deg off (R_err max 1.99 to 2.11; the other model's 0.33).
     assert report["num_registered"] >= 6
     assert report["R_err_max_deg"] < 2.5

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import itertools
-import os
 import shutil
 from pathlib import Path
 
@@ -186,16 +185,12 @@ def test_bad_options_and_databases(scene_database, tmp_path: Path) -> None:
         match_features(tmp_path / "empty.db")
 
 
-DATA = os.environ.get("COLMAP_EXT_DATA")
-
-
-@pytest.mark.skipif(not DATA, reason="COLMAP_EXT_DATA is not set (the folder holding "
-                    "templeSparseRing/): the real-data check is skipped")
-def test_temple_pairs_verify_and_colmap_maps_our_database(tmp_path: Path) -> None:
+def test_temple_pairs_verify_and_colmap_maps_our_database(tmp_path: Path,
+                                                          real_data: Path) -> None:
     """Four neighbouring temple views: our inliers agree with COLMAP's verification, and
     COLMAP's own incremental mapper reads the database we verified."""
     names = [f"templeSR{k:04d}.png" for k in (6, 7, 8, 9)]
-    image_path = Path(DATA) / "templeSparseRing"
+    image_path = real_data / "templeSparseRing"
     ours, theirs = tmp_path / "ours.db", tmp_path / "colmap.db"
     extract_features(ours, image_path, camera_model="PINHOLE",
                      camera_params="1520.4,1525.9,302.32,246.87", image_names=names,

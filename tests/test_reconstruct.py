@@ -5,7 +5,6 @@ from __future__ import annotations
 import argparse
 import inspect
 import json
-import os
 from pathlib import Path
 
 import cv2
@@ -98,12 +97,10 @@ def test_ring_end_to_end(tmp_path: Path) -> None:
         main(tmp_path / "images", workspace, "OPENCV", PARAMS)
 
 
-@pytest.mark.skipif(not os.environ.get("COLMAP_EXT_DATA"),
-                    reason="COLMAP_EXT_DATA is not set: no real data sets")
-def test_temple_sparse_ring_end_to_end(tmp_path: Path) -> None:
+def test_temple_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
     """Issue 4's real-data target: templeSparseRing from its images and the calibrated
     intrinsics. Measured R_err max 0.31 deg (seed 0), C_err max 0.013."""
-    folder = Path(os.environ["COLMAP_EXT_DATA"]) / "templeSparseRing"
+    folder = real_data / "templeSparseRing"
     truth = read_ground_truth(folder)
     camera = next(iter(truth.cameras.values()))
     params = ",".join(repr(float(p)) for p in camera.params)

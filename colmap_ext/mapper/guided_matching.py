@@ -54,8 +54,8 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
                                         options.guided_num_neighbors)
     E = essential_matrix(model.poses[other_id], model.poses[image_id])
     max_error = options.max_reproj_error_px / model.focal(image_id)
-    x1 = np.broadcast_to(model.normalized[image_id][kps][:, None], index.shape + (2,))
-    errors = sampson_errors(E, x1.reshape(-1, 2), model.normalized[other_id][index.ravel()])
+    x1 = np.repeat(model.normalized[image_id][kps], index.shape[1], axis=0)
+    errors = sampson_errors(E, x1, model.normalized[other_id][index.ravel()])
     compatible = (errors.reshape(index.shape) <= max_error) & \
         (angles <= options.max_descriptor_distance)
     first = np.argmax(compatible, axis=1)  # nearest compatible descriptor
