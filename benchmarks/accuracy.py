@@ -28,6 +28,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Iterator
 from contextlib import closing
 from dataclasses import dataclass
 from importlib.metadata import PackageNotFoundError, version
@@ -110,6 +111,17 @@ def update_section(path: Path, name: str, body: str) -> None:
     tmp = path.with_name(f".{path.name}.tmp")
     tmp.write_text(text)
     os.replace(tmp, path)
+
+
+@contextlib.contextmanager
+def work_folder(path: str | None, prefix: str) -> Iterator[Path]:
+    """The folder `path` (kept afterwards, for inspection), or a temporary one removed at the end."""
+    if path:
+        Path(path).mkdir(parents=True, exist_ok=True)
+        yield Path(path)
+    else:
+        with tempfile.TemporaryDirectory(prefix=prefix) as tmp:
+            yield Path(tmp)
 
 
 # ---------------------------------------------------------------------------------------
@@ -284,12 +296,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
 
     start = time.perf_counter()
-    with contextlib.ExitStack() as stack:
-        if args.work_dir:
-            work = Path(args.work_dir)
-            work.mkdir(parents=True, exist_ok=True)
-        else:
-            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="colmap-ext-accuracy-")))
+    with work_folder(args.work_dir, "colmap-ext-accuracy-") as work:
         datasets = find_datasets(Path(args.data)) if args.data else []
         if not args.data:
             print("COLMAP_EXT_DATA is not set: only the demo scene", file=sys.stderr)

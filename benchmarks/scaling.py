@@ -19,14 +19,12 @@ peak of a child that only imports what the mappers import: the floor under both.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import datetime
 import json
 import os
 import shutil
 import subprocess
 import sys
-import tempfile
 import time
 from pathlib import Path
 
@@ -151,7 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.worker:
         return worker(args)
 
-    from accuracy import machine_line, update_section, versions_line
+    from accuracy import machine_line, update_section, versions_line, work_folder
 
     mappers = [m.strip() for m in args.mappers.split(",") if m.strip()]
     unknown = [m for m in mappers if m not in ("ours", "colmap_incremental", "colmap_global")]
@@ -159,12 +157,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown mapper(s) in --mappers: {', '.join(unknown) or '(none)'}")
     start = time.perf_counter()
     rows: list[dict] = []
-    with contextlib.ExitStack() as stack:
-        if args.work_dir:
-            work = Path(args.work_dir)
-            work.mkdir(parents=True, exist_ok=True)
-        else:
-            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="colmap-ext-scaling-")))
+    with work_folder(args.work_dir, "colmap-ext-scaling-") as work:
         result_path = work / "result.json"
         code, baseline_mib = run_child(["--worker", "baseline", "--result", str(result_path)])
         if code != 0:
