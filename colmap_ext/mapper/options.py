@@ -23,6 +23,13 @@ class MapperOptions:
     abs_pose_max_error_px: float = 4.0
     abs_pose_min_num_inliers: int = 15
     abs_pose_min_inlier_ratio: float = 0.2
+    # The inliers must fix the pose's rotation to within this many times the keypoint
+    # noise (registration.rotation_uncertainty; it falls as 1/sqrt(inliers) and rises as
+    # the field of view narrows). Measured at registration: synthetic scenes (56 deg
+    # field of view) 3 or less; templeSparseRing (24 deg) up to 10; dinoSparseRing
+    # (11 deg) up to 13 for images that end within 0.9 deg, and 20 for its image 5
+    # (18 inliers), which registered 2 deg off and stayed there through every BA.
+    abs_pose_max_rotation_uncertainty: float = 15.0
     # Triangulation and pruning: an observation is geometrically compatible with a point
     # when it reprojects within this error; a point needs this angle between its rays.
     max_reproj_error_px: float = 3.0
