@@ -64,6 +64,13 @@ class MapperOptions:
     # A model smaller than this is not kept; the remaining images start a new model.
     min_model_size: int = 3
     max_num_models: int = 50
+    # Models are joined when two images of one, posed among the other's points, imply
+    # the same similarity: rotations and directions between centres within this angle.
+    # P3P from few points through a narrow field of view errs by a few degrees (dino
+    # rings: 1-2.5); unrelated wrong poses differ by tens of degrees.
+    merge_max_angle_deg: float = 5.0
+    # Rounds of retriangulation and global adjustment after joining two models.
+    merge_refinement_rounds: int = 3
     seed: int | None = None
     num_threads: int = -1
 

@@ -1,8 +1,10 @@
 """The incremental loop and `run()`: initial pair, then register, triangulate,
-adjust and prune image after image; several models when the images fall apart."""
+adjust and prune image after image; several models when the images fall apart,
+joined again where they can be (merging.py)."""
 
 from __future__ import annotations
 
+import itertools
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -16,6 +18,7 @@ from colmap_ext.database import DatabaseContents, read_database
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.bundle_adjustment import bundle_adjust, to_reconstruction
 from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
+from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 from colmap_ext.mapper.pruning import prune
@@ -81,6 +84,20 @@ class IncrementalMapper:
             pass
         self._global_adjustment(final=True)
         return True
+
+    def refine_joined(self) -> None:
+        """Adjust a model joined from two (merging.py): global adjustment, then rounds
+        of retriangulation and global adjustment. Retriangulation is guided matching of
+        every image against its neighbours, which now include the images across the
+        junction; the better poses of each round let the next match more of them."""
+        self._global_adjustment()
+        for _ in range(self.options.merge_refinement_rounds):
+            with self.timer("triangulation"):
+                for image_id in list(self.model.poses):
+                    triangulate_image(self.model, image_id,
+                                      self._neighbours(image_id, self.options.guided_num_images),
+                                      self.options, min_views=2)
+            self._global_adjustment(final=True)
 
     def _advance(self, n: int) -> None:
         if self.progress is not None:
@@ -172,24 +189,52 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     with timer("two-view geometry"):
         model = Model(db, image_ids)
         matches = verified_matches(model, options, progress)
-    reconstructions: list[pycolmap.Reconstruction] = []
+    all_matches = matches
+    models: list[Model] = []
     remaining = image_ids
     excluded_pairs: set[Pair] = set()
     bar = tqdm(total=len(image_ids), desc="registered", unit="image", disable=not progress)
     try:
-        while len(remaining) >= 2 and len(reconstructions) < options.max_num_models:
+        while len(remaining) >= 2 and len(models) < options.max_num_models:
             mapper = IncrementalMapper(model, matches, options, timer, bar)
             if not mapper.run(excluded_pairs):
                 break
             if model.num_registered >= options.min_model_size:
-                with timer("export"):
-                    reconstructions.append(export(model))
+                models.append(model)
             remaining = [i for i in remaining if i not in model.poses]
             model = Model(db, remaining)
             matches = {p: m for p, m in matches.items() if p[0] in remaining and p[1] in remaining}
     finally:
         bar.close()
-    return sorted(reconstructions, key=lambda r: -r.num_reg_images())
+    models = merge_models(models, all_matches, options, timer)
+    with timer("export"):
+        return [export(model) for model in models]
+
+
+def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: MapperOptions,
+                 timer: StageTimer) -> list[Model]:
+    """Join models two at a time while a pair of them gives a similarity (merging.py),
+    the larger one as the target, and adjust each joined model; largest first."""
+    models = sorted(models, key=lambda model: -model.num_registered)
+    if len(models) < 2:
+        return models
+    raw_graph = pair_graph(models[0].db.raw_matches)
+    while True:
+        for target, source in itertools.combinations(models, 2):
+            with timer("merging"):
+                found = find_similarity(target, source, raw_graph, options)
+            if found is not None:
+                break
+        else:
+            return models
+        with timer("merging"):
+            joined = join(target, source, *found)
+        images = set(joined.image_ids)
+        IncrementalMapper(joined, {p: m for p, m in matches.items()
+                                   if p[0] in images and p[1] in images},
+                          options, timer, None).refine_joined()
+        models = sorted([m for m in models if m is not target and m is not source] + [joined],
+                        key=lambda model: -model.num_registered)
 
 
 def _select_images(db, image_names: list[str] | None) -> list[int]:

@@ -1,0 +1,211 @@
+"""Joining models that incremental mapping left apart.
+
+Images fall apart into models where neighbouring images share too few points for a
+registration (`abs_pose_min_num_inliers`): on a ring of narrow-field views of a weakly
+textured object, for instance, two arcs grow into models of their own. An image next
+to such a gap still sees a few points of the other model, too few to trust one P3P
+pose: through a narrow field of view, poses from few points are often far off. Each
+such cross-registration, though, implies a similarity between the two models, and two
+images that imply the same one (the same rotation, and the same direction between
+their centres) do not agree by chance; together they have the support a registration
+needs. The models are then joined by that similarity, and the inliers of the two
+cross-registrations become shared observations; the caller adjusts the joined model.
+"""
+
+from __future__ import annotations
+
+import itertools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+import solvers
+from colmap_ext.mapper.guided_matching import nearest_descriptors
+from colmap_ext.mapper.model import Model
+from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.registration import MAX_RATIO
+
+# Nearest observations searched per keypoint for the ratio test, which compares the
+# nearest with the nearest observation of another point (a point has many observations).
+NUM_NEAREST_OBSERVATIONS = 20
+# A cross-registration counts with this many P3P inliers, twice the minimal sample:
+# alone far too few to trust, which is what the agreement of two is for.
+MIN_CROSS_INLIERS = 6
+
+
+@dataclass(frozen=True)
+class Similarity:
+    """target_from_source: X_target = scale * rotation @ X_source + translation."""
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+
+    def points(self, xyz: np.ndarray) -> np.ndarray:
+        return self.scale * xyz @ self.rotation.T + self.translation
+
+    def pose(self, cam_from_source: pycolmap.Rigid3d) -> pycolmap.Rigid3d:
+        """cam_from_target, the camera's coordinates scaled like the target's."""
+        rotation = cam_from_source.rotation.matrix() @ self.rotation.T
+        return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation),
+                                self.scale * cam_from_source.translation
+                                - rotation @ self.translation)
+
+
+@dataclass(frozen=True)
+class CrossRegistration:
+    """An image of one model posed among the other model's points, and what that
+    implies for target_from_source: its rotation and the image's centre in both frames."""
+
+    image_id: int
+    rotation: np.ndarray
+    centre_target: np.ndarray
+    centre_source: np.ndarray
+    kps: np.ndarray  # the image's inlier keypoints
+    point_ids: np.ndarray  # the other model's points they observe
+
+    @property
+    def num_inliers(self) -> int:
+        return len(self.kps)
+
+
+def find_similarity(target: Model, source: Model, raw_graph: dict[int, dict[int, np.ndarray]],
+                    options: MapperOptions
+                    ) -> tuple[Similarity, tuple[CrossRegistration, CrossRegistration]] | None:
+    """target_from_source from the two consistent cross-registrations with most inliers
+    together, if they have at least `abs_pose_min_num_inliers`; else None."""
+    registrations = [r for image_model, points_model in ((source, target), (target, source))
+                     for image_id in image_model.poses
+                     if (r := cross_register(image_model, image_id, points_model, raw_graph,
+                                             options, into_target=points_model is target))]
+    pairs = sorted(itertools.combinations(registrations, 2),
+                   key=lambda pair: -(pair[0].num_inliers + pair[1].num_inliers))
+    for a, b in pairs:
+        if a.num_inliers + b.num_inliers < options.abs_pose_min_num_inliers:
+            break
+        similarity = similarity_from(a, b, options.merge_max_angle_deg)
+        if similarity is not None:
+            return similarity, (a, b)
+    return None
+
+
+def cross_register(image_model: Model, image_id: int, points_model: Model,
+                   raw_graph: dict[int, dict[int, np.ndarray]], options: MapperOptions,
+                   into_target: bool) -> CrossRegistration | None:
+    """P3P of an image of `image_model` on descriptor matches to the points that
+    `points_model` has in the images it shares raw matches with; None if none or no pose.
+    `into_target` says whether `points_model` is the target of the similarity."""
+    neighbours = [i for i in raw_graph.get(image_id, {}) if i in points_model.poses]
+    kps, point_ids = _descriptor_correspondences(image_model, image_id, points_model, neighbours,
+                                                 options.max_descriptor_distance)
+    if len(kps) < MIN_CROSS_INLIERS:
+        return None
+    try:
+        result = solvers.absolute_pose(
+            image_model.rays[image_id][kps], points_model.xyz[point_ids],
+            max_error=options.abs_pose_max_error_px / image_model.focal(image_id),
+            min_num_inliers=MIN_CROSS_INLIERS, seed=options.seed)
+    except solvers.EstimationError:
+        return None
+    own_pose, other_pose = image_model.poses[image_id], result.cam_from_world
+    target_pose, source_pose = (other_pose, own_pose) if into_target else (own_pose, other_pose)
+    return CrossRegistration(
+        image_id, target_pose.rotation.matrix().T @ source_pose.rotation.matrix(),
+        target_pose.inverse().translation, source_pose.inverse().translation,
+        kps[result.inlier_mask], point_ids[result.inlier_mask])
+
+
+def _descriptor_correspondences(image_model: Model, image_id: int, points_model: Model,
+                                neighbours: list[int],
+                                max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+    """(keypoints, point ids): each keypoint's nearest observation in `neighbours`,
+    kept by the ratio test against the nearest observation of another point."""
+    observed = [points_model.observations(i) for i in neighbours]
+    if not observed or sum(len(kps) for kps, _ in observed) < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    descriptors = np.concatenate([points_model.descriptors[i][kps]
+                                  for i, (kps, _) in zip(neighbours, observed)])
+    points = np.concatenate([point_ids for _, point_ids in observed])
+    index, angles = nearest_descriptors(image_model.descriptors[image_id], descriptors,
+                                        NUM_NEAREST_OBSERVATIONS)
+    nearest = points[index]
+    other = nearest != nearest[:, :1]
+    rows = np.arange(len(index))
+    second = np.where(other.any(axis=1), angles[rows, np.argmax(other, axis=1)], np.pi)
+    ok = (angles[:, 0] <= max_distance) & \
+        (angles[:, 0] < MAX_RATIO * second)
+    return np.flatnonzero(ok), nearest[ok, 0]
+
+
+def similarity_from(a: CrossRegistration, b: CrossRegistration,
+                    max_angle_deg: float) -> Similarity | None:
+    """The similarity two cross-registrations imply, or None when they disagree: their
+    rotations, or the direction between their centres, differ by more than
+    `max_angle_deg`. Rotation: the mean of both; scale: the ratio of the centres'
+    distances; translation: the mean of what each centre implies."""
+    if _angle_deg(a.rotation.T @ b.rotation) > max_angle_deg:
+        return None
+    rotation = _mean_rotation(a.rotation, b.rotation)
+    baseline_target = b.centre_target - a.centre_target
+    baseline_source = rotation @ (b.centre_source - a.centre_source)
+    lengths = np.linalg.norm(baseline_target), np.linalg.norm(baseline_source)
+    if min(lengths) <= 0 or np.degrees(np.arccos(np.clip(
+            baseline_target @ baseline_source / (lengths[0] * lengths[1]), -1, 1))) > max_angle_deg:
+        return None
+    scale = lengths[0] / lengths[1]
+    translation = np.mean([r.centre_target - scale * rotation @ r.centre_source for r in (a, b)],
+                          axis=0)
+    return Similarity(scale, rotation, translation)
+
+
+def _angle_deg(rotation: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
+
+
+def _mean_rotation(*rotations: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) to the sum of `rotations`."""
+    u, _, vt = np.linalg.svd(sum(rotations))
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
+
+
+def join(target: Model, source: Model, similarity: Similarity,
+         links: tuple[CrossRegistration, ...]) -> Model:
+    """One model of both, in the target's frame: the source's poses and points moved by
+    `similarity`, and each cross-registration's inliers observing the same point."""
+    model = Model(target.db, sorted(set(target.image_ids) | set(source.image_ids)))
+    for image_id in target.registration_order:
+        model.register(image_id, target.poses[image_id])
+    for image_id in source.registration_order:
+        model.register(image_id, similarity.pose(source.poses[image_id]))
+    target_ids = _copy_points(model, target, lambda xyz: xyz)
+    source_ids = _copy_points(model, source, similarity.points)
+    for link in links:
+        new_ids = source_ids if link.image_id in target.poses else target_ids
+        for kp, point_id in zip(link.kps.tolist(), link.point_ids.tolist()):
+            _observe(model, link.image_id, kp, new_ids[point_id])
+    return model
+
+
+def _copy_points(model: Model, other: Model,
+                 move: Callable[[np.ndarray], np.ndarray]) -> dict[int, int]:
+    """Add `other`'s points (positions through `move`) to `model`; old id -> new id."""
+    return {point_id: model.add_point(move(other.xyz[point_id]), track)
+            for point_id, track in other.tracks.items()}
+
+
+def _observe(model: Model, image_id: int, kp: int, point_id: int) -> None:
+    """Keypoint `kp` of the image observes `point_id`: a free keypoint joins its track; a
+    keypoint observing another point merges that point into it, unless their tracks
+    share an image. A point merged away before is skipped."""
+    if point_id not in model.tracks or image_id in model.tracks[point_id]:
+        return
+    other = int(model.point_of[image_id][kp])
+    if other < 0:
+        model.add_observation(point_id, image_id, kp)
+    elif not set(model.tracks[other]) & set(model.tracks[point_id]):
+        track = dict(model.tracks[other])
+        model.delete_point(other)
+        for i, k in track.items():
+            model.add_observation(point_id, i, k)
