@@ -61,6 +61,14 @@ class Model:
         self.poses[image_id] = cam_from_world
         self.registration_order.append(image_id)
 
+    def deregister(self, image_id: int) -> None:
+        """Remove an image's pose and its observations (points keep their other ones)."""
+        kps, point_ids = self.observations(image_id)
+        for point_id in point_ids.tolist():
+            self.delete_observation(point_id, image_id)
+        del self.poses[image_id]
+        self.registration_order.remove(image_id)
+
     @property
     def num_registered(self) -> int:
         return len(self.poses)

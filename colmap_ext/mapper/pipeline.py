@@ -21,7 +21,7 @@ from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.pruning import prune
+from colmap_ext.mapper.pruning import deregister_ill_conditioned, prune
 from colmap_ext.mapper.registration import (descriptor_correspondences, register_image,
                                             track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
@@ -207,8 +207,13 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     finally:
         bar.close()
     models = merge_models(models, all_matches, options, timer)
+    with timer("pruning"):
+        for model in models:
+            deregister_ill_conditioned(model, options)
+    models = [m for m in models if m.num_registered >= options.min_model_size]
     with timer("export"):
-        return [export(model) for model in models]
+        reconstructions = [export(model) for model in models]
+    return sorted(reconstructions, key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
 
 
 def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: MapperOptions,

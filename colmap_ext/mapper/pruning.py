@@ -1,9 +1,11 @@
 """Pruning (paper, step 4e): observations no longer geometrically compatible with
-their point go, then points without enough support or triangulation angle."""
+their point go, then points without enough support or triangulation angle; at the
+end, images whose points leave their rotation poorly determined."""
 
 from __future__ import annotations
 
 import numpy as np
+import pycolmap
 
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
@@ -59,3 +61,49 @@ def max_triangulation_angles_deg(model: Model, point_ids: list[int]) -> np.ndarr
     rays /= np.linalg.norm(rays, axis=2, keepdims=True)
     cosines = np.nan_to_num(np.einsum("pid,pjd->pij", rays, rays), nan=1.0)
     return np.degrees(np.arccos(np.clip(cosines.min(axis=(1, 2)), -1.0, 1.0)))
+
+
+def deregister_ill_conditioned(model: Model, options: MapperOptions) -> list[int]:
+    """Deregister the images whose observed points fix their rotation worse than
+    `max_rotation_uncertainty` (see `rotation_uncertainty`); returns their ids.
+
+    Run on a finished model: a weak image at the edge of a model (few points through a
+    narrow field of view) can sit degrees off with every observation within a pixel,
+    and nothing registered after it corrects it. Judged at the end, not at
+    registration, an image that later images and joined models support is kept."""
+    weak = []
+    for image_id in list(model.poses):
+        _, point_ids = model.observations(image_id)
+        if rotation_uncertainty(model.poses[image_id], model.xyz[point_ids]) > \
+                options.max_rotation_uncertainty:
+            model.deregister(image_id)
+            weak.append(image_id)
+    return weak
+
+
+def rotation_uncertainty(cam_from_world: pycolmap.Rigid3d, xyz: np.ndarray) -> float:
+    """How poorly the points `xyz` fix the pose's rotation: the standard deviation of
+    the rotation (radians, about its least determined axis, marginal over the
+    translation) per radian of keypoint noise, the points taken as exact.
+
+    Gauss-Newton on the reprojection errors in normalized image units, with the
+    Jacobian of absolute_pose's refinement: covariance (J^T J)^-1. Few inliers in a
+    narrow field of view, or on a shallow scene, let a rotation trade off against a
+    translation (bas-relief): the uncertainty grows, and so does any bias of the points."""
+    pose = cam_from_world.matrix()
+    rotated = xyz @ pose[:, :3].T
+    x = rotated + pose[:, 3]
+    inv_z = 1.0 / x[:, 2]
+    zeros = np.zeros(len(x))
+    dproject = np.stack([np.stack([inv_z, zeros, -x[:, 0] * inv_z ** 2], axis=1),
+                         np.stack([zeros, inv_z, -x[:, 1] * inv_z ** 2], axis=1)], axis=1)
+    skew = np.zeros((len(x), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -rotated[:, 2], rotated[:, 1], -rotated[:, 0]
+    skew -= skew.transpose(0, 2, 1)
+    jacobian = np.concatenate([-dproject @ skew, dproject], axis=2)  # d(residual)/d(w, u)
+    normal = np.einsum("nki,nkj->ij", jacobian, jacobian)
+    try:
+        covariance = np.linalg.inv(normal)[:3, :3]
+    except np.linalg.LinAlgError:
+        return float("inf")
+    return float(np.sqrt(max(np.linalg.eigvalsh(covariance)[-1], 0.0)))

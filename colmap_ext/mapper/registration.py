@@ -4,7 +4,6 @@ the model's points, then P3P RANSAC (OpenGV) refined on the inliers."""
 from __future__ import annotations
 
 import numpy as np
-import pycolmap
 
 import solvers
 from colmap_ext.mapper.guided_matching import nearest_descriptors
@@ -68,11 +67,8 @@ def register_image(model: Model, image_id: int, kps: np.ndarray, point_ids: np.n
         return False
     if result.num_inliers < options.abs_pose_min_inlier_ratio * len(np.unique(kps)):
         return False
-    kps, point_ids = kps[result.inlier_mask], point_ids[result.inlier_mask]
-    if rotation_uncertainty(result.cam_from_world, model.xyz[point_ids]) > \
-            options.abs_pose_max_rotation_uncertainty:
-        return False
     model.register(image_id, result.cam_from_world)
+    kps, point_ids = kps[result.inlier_mask], point_ids[result.inlier_mask]
     errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
     for i in np.argsort(errors, kind="stable"):
         kp, point_id = int(kps[i]), int(point_ids[i])
@@ -80,31 +76,3 @@ def register_image(model: Model, image_id: int, kps: np.ndarray, point_ids: np.n
                 and errors[i] <= options.abs_pose_max_error_px:
             model.add_observation(point_id, image_id, kp)
     return True
-
-
-def rotation_uncertainty(cam_from_world: pycolmap.Rigid3d, xyz: np.ndarray) -> float:
-    """How poorly the inliers `xyz` fix the pose's rotation: the standard deviation of
-    the rotation (radians, about its least determined axis, marginal over the
-    translation) per radian of keypoint noise, the points taken as exact.
-
-    Gauss-Newton on the reprojection errors in normalized image units, with the
-    Jacobian of absolute_pose's refinement: covariance (J^T J)^-1. Few inliers in a
-    narrow field of view, or on a shallow scene, let a rotation trade off against a
-    translation (bas-relief): the uncertainty grows, and so does any bias of the points."""
-    pose = cam_from_world.matrix()
-    rotated = xyz @ pose[:, :3].T
-    x = rotated + pose[:, 3]
-    inv_z = 1.0 / x[:, 2]
-    zeros = np.zeros(len(x))
-    dproject = np.stack([np.stack([inv_z, zeros, -x[:, 0] * inv_z ** 2], axis=1),
-                         np.stack([zeros, inv_z, -x[:, 1] * inv_z ** 2], axis=1)], axis=1)
-    skew = np.zeros((len(x), 3, 3))
-    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -rotated[:, 2], rotated[:, 1], -rotated[:, 0]
-    skew -= skew.transpose(0, 2, 1)
-    jacobian = np.concatenate([-dproject @ skew, dproject], axis=2)  # d(residual)/d(w, u)
-    normal = np.einsum("nki,nkj->ij", jacobian, jacobian)
-    try:
-        covariance = np.linalg.inv(normal)[:3, :3]
-    except np.linalg.LinAlgError:
-        return float("inf")
-    return float(np.sqrt(max(np.linalg.eigvalsh(covariance)[-1], 0.0)))
