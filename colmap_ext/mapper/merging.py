@@ -22,6 +22,7 @@ import numpy as np
 import pycolmap
 
 import solvers
+from colmap_ext.evaluate import rotation_angles_deg, vector_angles_deg
 from colmap_ext.mapper.guided_matching import nearest_descriptors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
@@ -145,23 +146,19 @@ def similarity_from(a: CrossRegistration, b: CrossRegistration,
     rotations, or the direction between their centres, differ by more than
     `max_angle_deg`. Rotation: the mean of both; scale: the ratio of the centres'
     distances; translation: the mean of what each centre implies."""
-    if _angle_deg(a.rotation.T @ b.rotation) > max_angle_deg:
+    if rotation_angles_deg((a.rotation.T @ b.rotation)[None])[0] > max_angle_deg:
         return None
     rotation = _mean_rotation(a.rotation, b.rotation)
     baseline_target = b.centre_target - a.centre_target
     baseline_source = rotation @ (b.centre_source - a.centre_source)
     lengths = np.linalg.norm(baseline_target), np.linalg.norm(baseline_source)
-    if min(lengths) <= 0 or np.degrees(np.arccos(np.clip(
-            baseline_target @ baseline_source / (lengths[0] * lengths[1]), -1, 1))) > max_angle_deg:
+    if min(lengths) <= 0 or vector_angles_deg(baseline_target[None],
+                                              baseline_source[None])[0] > max_angle_deg:
         return None
     scale = lengths[0] / lengths[1]
     translation = np.mean([r.centre_target - scale * rotation @ r.centre_source for r in (a, b)],
                           axis=0)
     return Similarity(scale, rotation, translation)
-
-
-def _angle_deg(rotation: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(rotation) - 1) / 2, -1.0, 1.0))))
 
 
 def _mean_rotation(*rotations: np.ndarray) -> np.ndarray:

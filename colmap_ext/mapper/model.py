@@ -63,7 +63,7 @@ class Model:
 
     def deregister(self, image_id: int) -> None:
         """Remove an image's pose and its observations (points keep their other ones)."""
-        kps, point_ids = self.observations(image_id)
+        _, point_ids = self.observations(image_id)
         for point_id in point_ids.tolist():
             self.delete_observation(point_id, image_id)
         del self.poses[image_id]
