@@ -65,4 +65,8 @@ def format_summary(summary: dict, output_path: str) -> str:
                      f"mean reprojection error {model['mean_reprojection_error']:.3f} px")
     times = ", ".join(f"{stage} {seconds:.2f}s" for stage, seconds in summary["time_s"].items())
     lines.append(f"Time: {times}")
+    counts = summary.get("counts", {})
+    if counts.get("bundle adjustment solves"):
+        lines.append(f"Bundle adjustment: {counts['bundle adjustment solves']} solves, "
+                     f"{counts['bundle adjustment iterations']} Ceres iterations")
     return "\n".join(lines)

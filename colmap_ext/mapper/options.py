@@ -47,6 +47,11 @@ class MapperOptions:
     ba_local_max_iterations: int = 25
     ba_global_images_ratio: float = 1.1
     ba_global_max_iterations: int = 50
+    # The robust loss: "cauchy" (default), "soft_l1" or "trivial". Cauchy at 1 px is what
+    # makes the poses accurate, and what makes Ceres slow: it converges linearly,
+    # ~27 iterations a solve where soft-L1 takes ~8 and the trivial loss ~6 (templeSparseRing
+    # R_err max 0.31 deg against 0.84 and 1.73; benchmarks/mapper_profile.py measures it).
+    ba_loss: str = "cauchy"
     ba_loss_scale_px: float = 1.0
     # Ceres stops when an iteration lowers the cost by less than this fraction. COLMAP
     # runs to the iteration limit (0); with the robust loss that only creeps (< 0.1 %
@@ -77,3 +82,5 @@ class MapperOptions:
     def __post_init__(self) -> None:
         if self.order not in ("visibility", "sequence"):
             raise ValueError(f"order must be 'visibility' or 'sequence', got {self.order!r}")
+        if self.ba_loss not in ("cauchy", "soft_l1", "trivial"):
+            raise ValueError(f"ba_loss must be 'cauchy', 'soft_l1' or 'trivial', got {self.ba_loss!r}")

@@ -34,10 +34,11 @@ MAX_CANDIDATES_PER_ROUND = 10
 
 
 class StageTimer:
-    """Wall time per pipeline stage, summed over calls."""
+    """Wall time per pipeline stage, summed over calls, and counts of what the stages did."""
 
     def __init__(self) -> None:
         self.seconds: dict[str, float] = defaultdict(float)
+        self.counts: dict[str, int] = defaultdict(int)
 
     @contextmanager
     def __call__(self, stage: str):
@@ -164,8 +165,7 @@ class IncrementalMapper:
             self._global_adjustment()
             return
         local = [image_id] + self._neighbours(image_id, options.ba_local_num_images)
-        with self.timer("bundle adjustment"):
-            bundle_adjust(self.model, local, options, options.ba_local_max_iterations)
+        self._bundle_adjust(local, options.ba_local_max_iterations)
         with self.timer("pruning"):
             prune(self.model, local, options)
 
@@ -173,11 +173,16 @@ class IncrementalMapper:
         model, options = self.model, self.options
         registered = list(model.poses)
         for _ in range(2 if final else 1):
-            with self.timer("bundle adjustment"):
-                bundle_adjust(model, registered, options, options.ba_global_max_iterations)
+            self._bundle_adjust(registered, options.ba_global_max_iterations)
             with self.timer("pruning"):
                 prune(model, registered, options, final=final)
         self.num_images_at_global_ba = model.num_registered
+
+    def _bundle_adjust(self, image_ids: list[int], max_iterations: int) -> None:
+        with self.timer("bundle adjustment"):
+            iterations = bundle_adjust(self.model, image_ids, self.options, max_iterations)
+        self.timer.counts["bundle adjustment solves"] += 1
+        self.timer.counts["bundle adjustment iterations"] += iterations
 
 
 def reconstruct(db: DatabaseContents, options: MapperOptions,
@@ -313,4 +318,5 @@ def summarize(reconstructions: list[pycolmap.Reconstruction], timer: StageTimer,
         "models": models,
         "time_s": {**{k: round(v, 3) for k, v in timer.seconds.items()},
                    "total": round(total_seconds, 3)},
+        "counts": dict(timer.counts),
     }
