@@ -165,6 +165,36 @@ def demo_dataset(work: Path, seed: int) -> Dataset:
                    list(scene.image_names))
 
 
+def prepared_datasets(data: str | None, work: Path, seed: int,
+                      demo: bool) -> Iterator[tuple[Dataset, Path, dict]]:
+    """Every data set under `data`, then the demo scene unless `demo` is False, each with
+    a database built afresh in its folder of `work`: (data set, database, its statistics)."""
+    datasets = find_datasets(Path(data)) if data else []
+    if not data:
+        print("COLMAP_EXT_DATA is not set: only the demo scene", file=sys.stderr)
+    if demo:
+        print("rendering the demo scene ...", file=sys.stderr, flush=True)
+        datasets.append(demo_dataset(work, seed))
+    for dataset in datasets:
+        print(f"\n=== {dataset.name} ===", file=sys.stderr, flush=True)
+        folder = work / dataset.name.split()[0]
+        folder.mkdir(parents=True, exist_ok=True)
+        database = folder / "database.db"
+        database.unlink(missing_ok=True)
+        yield dataset, database, build_database(dataset, database)
+
+
+def add_common_arguments(parser: argparse.ArgumentParser) -> None:
+    """The data, seed, work folder and output arguments of the data-set benchmarks."""
+    parser.add_argument("--data", default=os.environ.get("COLMAP_EXT_DATA"),
+                        help="folder of data sets (default: $COLMAP_EXT_DATA)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--work_dir", default=None,
+                        help="keep databases, models and reports here (default: a temporary folder)")
+    parser.add_argument("--output", default=str(REPO / "BENCHMARKS.md"))
+    parser.add_argument("--no_demo", action="store_true", help="skip the synthetic demo scene")
+
+
 def build_database(dataset: Dataset, database_path: Path) -> dict:
     """pycolmap default SIFT and exhaustive matching, one camera with the known intrinsics."""
     reader = pycolmap.ImageReaderOptions()
@@ -283,34 +313,18 @@ def section(rows: list[list[str]], notes: list[str], seed: int, elapsed_s: float
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get("COLMAP_EXT_DATA"),
-                        help="folder of data sets (default: $COLMAP_EXT_DATA)")
+    add_common_arguments(parser)
     parser.add_argument("--mappers", default=",".join(MAPPERS))
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--work_dir", default=None,
-                        help="keep databases, models and reports here (default: a temporary folder)")
-    parser.add_argument("--output", default=str(REPO / "BENCHMARKS.md"))
     parser.add_argument("--no_reconstruct", action="store_true",
                         help="skip our end-to-end reconstruct rows")
-    parser.add_argument("--no_demo", action="store_true", help="skip the synthetic demo scene")
     args = parser.parse_args(argv)
 
     start = time.perf_counter()
     with work_folder(args.work_dir, "colmap-ext-accuracy-") as work:
-        datasets = find_datasets(Path(args.data)) if args.data else []
-        if not args.data:
-            print("COLMAP_EXT_DATA is not set: only the demo scene", file=sys.stderr)
-        if not args.no_demo:
-            print("rendering the demo scene ...", file=sys.stderr, flush=True)
-            datasets.append(demo_dataset(work, args.seed))
         rows, notes = [], []
-        for dataset in datasets:
-            print(f"\n=== {dataset.name} ===", file=sys.stderr, flush=True)
-            folder = work / dataset.name.split()[0]
-            folder.mkdir(parents=True, exist_ok=True)
-            database = folder / "database.db"
-            database.unlink(missing_ok=True)
-            stats = build_database(dataset, database)
+        for dataset, database, stats in prepared_datasets(args.data, work, args.seed,
+                                                          not args.no_demo):
+            folder = database.parent
             notes.append(f"{dataset.name}: {len(dataset.image_names)} images, "
                          f"{stats['keypoints_mean']:.0f} SIFT keypoints per image on average "
                          f"(min {stats['keypoints_min']}), {stats['verified_pairs']} verified pairs; "

@@ -16,13 +16,12 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import sys
 import time
 from pathlib import Path
 
-from accuracy import (REPO, build_database, demo_dataset, find_datasets, machine_line,
-                      markdown_table, update_section, versions_line, work_folder)
+from accuracy import (add_common_arguments, machine_line, markdown_table, prepared_datasets,
+                      update_section, versions_line, work_folder)
 
 from colmap_ext.compare import run_mapper
 from colmap_ext.database import read_database
@@ -92,30 +91,14 @@ def section(rows: list[list[str]], notes: list[str], seed: int, elapsed_s: float
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--data", default=os.environ.get("COLMAP_EXT_DATA"),
-                        help="folder of data sets (default: $COLMAP_EXT_DATA)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--work_dir", default=None,
-                        help="keep the databases here (default: a temporary folder)")
-    parser.add_argument("--output", default=str(REPO / "BENCHMARKS.md"))
-    parser.add_argument("--no_demo", action="store_true", help="skip the synthetic demo scene")
+    add_common_arguments(parser)
     args = parser.parse_args(argv)
 
     start = time.perf_counter()
     with work_folder(args.work_dir, "colmap-ext-profile-") as work:
-        datasets = find_datasets(Path(args.data)) if args.data else []
-        if not args.data:
-            print("COLMAP_EXT_DATA is not set: only the demo scene", file=sys.stderr)
-        if not args.no_demo:
-            datasets.append(demo_dataset(work, args.seed))
         rows, notes = [], []
-        for dataset in datasets:
-            print(f"=== {dataset.name} ===", file=sys.stderr, flush=True)
-            folder = work / dataset.name.split()[0]
-            folder.mkdir(parents=True, exist_ok=True)
-            database = folder / "database.db"
-            database.unlink(missing_ok=True)
-            build_database(dataset, database)
+        for dataset, database, _ in prepared_datasets(args.data, work, args.seed, not args.no_demo):
+            folder = database.parent
             colmap = run_mapper("colmap_incremental", database, dataset.image_path,
                                 folder / "colmap_incremental", args.seed, progress=False)
             if colmap.error:
