@@ -511,8 +511,10 @@ def format_mapper_table(report: dict) -> str:
     """One row per mapper: registration, model statistics, time and (with a ground truth)
     the pose errors as max / median."""
     with_gt = report.get("ground_truth") is not None
+    reference = report["mappers"].get("colmap_incremental", {})
+    reference_s = None if "error" in reference else reference.get("time_s")
     headings = ["mapper", "registered", "models", "points", "track length", "reproj. error [px]",
-                "time [s]"]
+                "time [s]"] + (["time / COLMAP incremental"] if reference_s else [])
     if with_gt:
         headings += [f"{key.removesuffix('_deg')} max / median" + (" [deg]" if unit == "deg" else "")
                      for key, unit in MEASURES.items()]
@@ -527,6 +529,8 @@ def format_mapper_table(report: dict) -> str:
         row = [name, registered, str(entry["num_models"]), str(entry["num_points3D"]),
                _number(entry["mean_track_length"], 2), _number(entry["mean_reprojection_error"], 3),
                f"{entry['time_s']:.2f}"]
+        if reference_s:
+            row.append("–" if "error" in entry else f"{entry['time_s'] / reference_s:.2f}x")
         if with_gt:
             digits = {"R_err_deg": 3, "T_err_deg": 3, "C_err": 4, "C_err_aligned": 4}
             row += [_max_median(entry, key, digits[key]) for key in MEASURES]
@@ -577,7 +581,8 @@ def format_markdown(report: dict, has_plot: bool) -> str:
         "", "## Mappers", "", format_mapper_table(report), "",
         "*registered*: images in the largest model (the one evaluated and compared) / images "
         "in the database. *time*: wall time of the mapping call (reading the database, mapping, "
-        "writing the model).",
+        "writing the model), and its ratio to COLMAP incremental's in this run; seconds on "
+        "one machine say little about another, the ratio more.",
     ]
     if report["ground_truth"]:
         lines.append("Pose errors (the paper's measures, relative to the first registered "

@@ -66,6 +66,11 @@ def test_writes_every_file(compared):
     assert not [p for p in output.iterdir() if p.name.startswith(".")], "temporary files left"
     markdown = (output / "report.md").read_text()
     assert "| ours " in markdown and "| colmap_incremental " in markdown
+    # Our time as a ratio to COLMAP incremental's, the measure users compare mappers by.
+    report = json.loads((output / "report.json").read_text())
+    ratio = report["mappers"]["ours"]["time_s"] / report["mappers"]["colmap_incremental"]["time_s"]
+    ours_row = next(line for line in markdown.splitlines() if line.startswith("| ours "))
+    assert "time / COLMAP incremental" in markdown and f" {ratio:.2f}x " in ours_row
     assert "compare_reconstructions" in markdown
 
 
