@@ -27,10 +27,9 @@ from colmap_ext.compare import run_mapper
 from colmap_ext.database import read_database
 from colmap_ext.evaluate import evaluate
 from colmap_ext.ground_truth import read_ground_truth
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import BA_LOSSES, MapperOptions
 from colmap_ext.mapper.pipeline import StageTimer, reconstruct
 
-LOSSES = ("cauchy", "soft_l1", "trivial")
 STAGES = ("registration", "triangulation", "bundle adjustment", "pruning")
 
 
@@ -107,7 +106,7 @@ def main(argv: list[str] | None = None) -> int:
             notes.append(f"{dataset.name}: COLMAP incremental {colmap.time_s:.2f} s, "
                          f"{colmap.reconstructions[0].num_reg_images()} images registered")
             runs = {}
-            for loss in LOSSES:
+            for loss in BA_LOSSES:
                 print(f"ours, {loss} loss ...", file=sys.stderr, flush=True)
                 runs[loss] = profile_ours(database, dataset.ground_truth, loss, args.seed)
             rows += rows_for(dataset.name, colmap.time_s, runs)

@@ -4,6 +4,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+# Robust losses of bundle adjustment (pycolmap.LossFunctionType, lower case).
+BA_LOSSES = ("cauchy", "soft_l1", "trivial")
+
 
 @dataclass
 class MapperOptions:
@@ -47,7 +50,7 @@ class MapperOptions:
     ba_local_max_iterations: int = 25
     ba_global_images_ratio: float = 1.1
     ba_global_max_iterations: int = 50
-    # The robust loss: "cauchy" (default), "soft_l1" or "trivial". Cauchy at 1 px is what
+    # The robust loss, one of BA_LOSSES; Cauchy at 1 px is what
     # makes the poses accurate, and what makes Ceres slow: it converges linearly,
     # ~27 iterations a solve where soft-L1 takes ~8 and the trivial loss ~6 (templeSparseRing
     # R_err max 0.31 deg against 0.84 and 1.73; benchmarks/mapper_profile.py measures it).
@@ -82,5 +85,5 @@ class MapperOptions:
     def __post_init__(self) -> None:
         if self.order not in ("visibility", "sequence"):
             raise ValueError(f"order must be 'visibility' or 'sequence', got {self.order!r}")
-        if self.ba_loss not in ("cauchy", "soft_l1", "trivial"):
-            raise ValueError(f"ba_loss must be 'cauchy', 'soft_l1' or 'trivial', got {self.ba_loss!r}")
+        if self.ba_loss not in BA_LOSSES:
+            raise ValueError(f"ba_loss must be one of {', '.join(BA_LOSSES)}, got {self.ba_loss!r}")
