@@ -29,7 +29,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
-def build_parser() -> argparse.ArgumentParser:
+def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
+    """The parser; only the subcommand named in `argv` (all of them when `argv` is None)
+    is imported and given its flags, so a command does not pay for the others' imports."""
+    named = [a for a in argv if a in COMMANDS][:1] if argv is not None else list(COMMANDS)
     parser = argparse.ArgumentParser(
         prog="colmap-ext",
         description="Camera poses for calibrated cameras, as a drop-in for `colmap mapper`.",
@@ -37,16 +40,18 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"colmap-ext {__version__}")
     subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name, (module_name, help_text) in COMMANDS.items():
-        module = importlib.import_module(module_name)
         sub = subparsers.add_parser(name, help=help_text, description=help_text)
-        module.add_arguments(sub)
-        sub.set_defaults(_module=module)
+        if name in named:
+            module = importlib.import_module(module_name)
+            module.add_arguments(sub)
+            sub.set_defaults(_module=module)
     return parser
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
     try:
-        parser = build_parser()  # imports every subcommand: Ctrl-C may come that early
+        parser = build_parser(argv)  # imports the subcommand: Ctrl-C may come that early
         args = parser.parse_args(argv)
         if args.command is None:
             parser.print_help()

@@ -20,23 +20,6 @@ def essential_matrix(cam2_from_world: pycolmap.Rigid3d,
     return skew @ cam2_from_cam1.rotation.matrix()
 
 
-def nearest_descriptors(queries: np.ndarray, database: np.ndarray,
-                        k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (q, k) of the k nearest unit descriptors, nearest first, and their
-    angles (radians). k rounds of argmax: for the small k used here, several times
-    faster than a partial sort of the similarity matrix."""
-    k = min(k, len(database))
-    similarity = queries @ database.T
-    rows = np.arange(len(queries))
-    index = np.empty((len(queries), k), np.int64)
-    best = np.empty((len(queries), k), similarity.dtype)
-    for j in range(k):
-        index[:, j] = np.argmax(similarity, axis=1)
-        best[:, j] = similarity[rows, index[:, j]]
-        similarity[rows, index[:, j]] = -np.inf
-    return index, np.arccos(np.clip(best, -1.0, 1.0))
-
-
 def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndarray,
                         options: MapperOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For keypoints `kps` of `image_id`, the best compatible keypoint in `other_id`.
@@ -49,9 +32,8 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
     if len(kps) == 0 or len(model.keypoints[other_id]) == 0:
         return empty
-    index, angles = nearest_descriptors(model.descriptors[image_id][kps],
-                                        model.descriptors[other_id],
-                                        options.guided_num_neighbors)
+    index, angles = model.nearest(image_id, other_id)
+    index, angles = index[kps], angles[kps]
     E = essential_matrix(model.poses[other_id], model.poses[image_id])
     max_error = options.max_reproj_error_px / model.focal(image_id)
     x1 = np.repeat(model.normalized[image_id][kps], index.shape[1], axis=0)

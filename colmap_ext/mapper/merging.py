@@ -23,7 +23,7 @@ import pycolmap
 
 import solvers
 from colmap_ext.evaluate import rotation_angles_deg, vector_angles_deg
-from colmap_ext.mapper.guided_matching import nearest_descriptors
+from colmap_ext.mapper.descriptors import nearest_descriptors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 from colmap_ext.mapper.registration import MAX_RATIO
@@ -171,7 +171,8 @@ def join(target: Model, source: Model, similarity: Similarity,
          links: tuple[CrossRegistration, ...]) -> Model:
     """One model of both, in the target's frame: the source's poses and points moved by
     `similarity`, and each cross-registration's inliers observing the same point."""
-    model = Model(target.db, sorted(set(target.image_ids) | set(source.image_ids)))
+    model = Model(target.db, target.nearest,
+                  sorted(set(target.image_ids) | set(source.image_ids)))
     for image_id in target.registration_order:
         model.register(image_id, target.poses[image_id])
     for image_id in source.registration_order:

@@ -1,6 +1,6 @@
 """The growing model: registered poses and 3D points with their tracks.
 
-Features live in arrays per image (normalized coordinates, unit rays, unit
+Features live in arrays per image (normalized coordinates, unit rays, uint8 SIFT
 descriptors, and `point_of`, the point each keypoint observes or -1). Points live in
 a growable (P, 3) array indexed by point id, with a dict per point for its track
 (image id -> keypoint index): every step touches a neighbourhood of images, so
@@ -13,17 +13,14 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.database import DatabaseContents
-
-
-def _unit_descriptors(descriptors: np.ndarray) -> np.ndarray:
-    d = descriptors.astype(np.float32)
-    norms = np.linalg.norm(d, axis=1, keepdims=True)
-    return d / np.maximum(norms, 1e-12)
+from colmap_ext.mapper.descriptors import NearestDescriptors
 
 
 class Model:
-    def __init__(self, db: DatabaseContents, image_ids: list[int] | None = None) -> None:
+    def __init__(self, db: DatabaseContents, nearest: NearestDescriptors,
+                 image_ids: list[int] | None = None) -> None:
         self.db = db
+        self.nearest = nearest  # descriptor searches, shared by every model of a run
         self.image_ids = sorted(image_ids if image_ids is not None else db.images)
         self.cameras = db.cameras
         self.keypoints: dict[int, np.ndarray] = {}
@@ -40,7 +37,7 @@ class Model:
             self.keypoints[image_id] = image.keypoints
             self.normalized[image_id] = xy
             self.rays[image_id] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
-            self.descriptors[image_id] = _unit_descriptors(image.descriptors)
+            self.descriptors[image_id] = image.descriptors
             self.point_of[image_id] = np.full(len(image.keypoints), -1, dtype=np.int64)
         self.poses: dict[int, pycolmap.Rigid3d] = {}
         self.registration_order: list[int] = []

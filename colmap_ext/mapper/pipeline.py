@@ -17,6 +17,7 @@ from tqdm import tqdm
 from colmap_ext.database import DatabaseContents, read_database
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.bundle_adjustment import bundle_adjust, to_reconstruction
+from colmap_ext.mapper.descriptors import NearestDescriptors
 from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
@@ -31,6 +32,8 @@ from colmap_ext.model_io import check_output_path, write_json, write_models
 
 # Images tried per round before the mapper gives up on growing the model.
 MAX_CANDIDATES_PER_ROUND = 10
+# Memory for the descriptor searches kept between guided matchings of the same pair.
+NEAREST_DESCRIPTORS_BYTES = 64 * 2**20
 
 
 class StageTimer:
@@ -191,8 +194,10 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     """All models that the database's images give, largest first (nothing written)."""
     timer = timer or StageTimer()
     image_ids = _select_images(db, image_names)
+    nearest = NearestDescriptors({i: db.images[i].descriptors for i in image_ids},
+                                 options.guided_num_neighbors, NEAREST_DESCRIPTORS_BYTES)
     with timer("two-view geometry"):
-        model = Model(db, image_ids)
+        model = Model(db, nearest, image_ids)
         matches = verified_matches(model, options, progress)
     all_matches = matches
     models: list[Model] = []
@@ -207,7 +212,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
             if model.num_registered >= options.min_model_size:
                 models.append(model)
             remaining = [i for i in remaining if i not in model.poses]
-            model = Model(db, remaining)
+            model = Model(db, nearest, remaining)
             matches = {p: m for p, m in matches.items() if p[0] in remaining and p[1] in remaining}
     finally:
         bar.close()

@@ -26,16 +26,16 @@ def prune(model: Model, image_ids: list[int], options: MapperOptions,
             model.delete_observation(point_id, image_id)
             removed_observations += 1
     candidates = [p for p in touched if p in model.tracks]
-    angles = max_triangulation_angles_deg(model, candidates)
+    wide = has_triangulation_angle(model, candidates, options.min_tri_angle_deg)
     removed_points = 0
-    for point_id, angle in zip(candidates, angles):
-        if not _supported(model, point_id, angle, options, final):
+    for point_id, wide_enough in zip(candidates, wide):
+        if not _supported(model, point_id, wide_enough, options, final):
             model.delete_point(point_id)
             removed_points += 1
     return removed_observations, removed_points
 
 
-def _supported(model: Model, point_id: int, angle_deg: float, options: MapperOptions,
+def _supported(model: Model, point_id: int, wide_enough: bool, options: MapperOptions,
                final: bool) -> bool:
     track = model.tracks[point_id]
     if len(track) < 2:
@@ -43,24 +43,45 @@ def _supported(model: Model, point_id: int, angle_deg: float, options: MapperOpt
     age = model.num_registered - model.born[point_id]
     if len(track) < options.min_track_length and (final or age >= options.track_grace_registrations):
         return False
-    return angle_deg >= options.min_tri_angle_deg
+    return bool(wide_enough)
 
 
-def max_triangulation_angles_deg(model: Model, point_ids: list[int]) -> np.ndarray:
-    """The widest angle between two rays of each point's track (0 for single rays)."""
+def has_triangulation_angle(model: Model, point_ids: list[int], min_angle_deg: float) -> np.ndarray:
+    """Whether some two rays of each point's track meet at `min_angle_deg` or more.
+
+    Linear in the number of observations: with a_k the angle between ray k and a
+    pivot ray, the widest pair is at least max(a_k) and at most 2 max(a_k) (triangle
+    inequality). The first ray, then the ray farthest from it, serve as pivots; only
+    the points both bounds leave undecided are compared pair by pair."""
     if not point_ids:
-        return np.zeros(0)
+        return np.zeros(0, bool)
     image_index = {image_id: k for k, image_id in enumerate(model.poses)}
     centres = np.array([model.centre(image_id) for image_id in model.poses])
     lengths = np.array([len(model.tracks[p]) for p in point_ids])
-    observed = np.array([image_index[i] for p in point_ids for i in model.tracks[p]], np.int64)
-    rows = np.repeat(np.arange(len(point_ids)), lengths)
-    columns = np.arange(len(rows)) - np.repeat(np.cumsum(lengths) - lengths, lengths)
-    rays = np.full((len(point_ids), lengths.max(), 3), np.nan)
-    rays[rows, columns] = model.xyz[np.repeat(point_ids, lengths)] - centres[observed]
-    rays /= np.linalg.norm(rays, axis=2, keepdims=True)
-    cosines = np.nan_to_num(np.einsum("pid,pjd->pij", rays, rays), nan=1.0)
-    return np.degrees(np.arccos(np.clip(cosines.min(axis=(1, 2)), -1.0, 1.0)))
+    observed = np.fromiter((image_index[i] for p in point_ids for i in model.tracks[p]),
+                           np.int64, count=int(lengths.sum()))
+    rays = np.repeat(model.xyz[point_ids], lengths, axis=0) - centres[observed]
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    starts = np.cumsum(lengths) - lengths
+    owner = np.repeat(np.arange(len(point_ids)), lengths)
+    min_cos = np.cos(np.radians(min_angle_deg))
+    wide = np.zeros(len(point_ids), bool)
+    undecided = np.ones(len(point_ids), bool)
+    pivot = starts
+    for _ in range(2):
+        cosines = np.einsum("ij,ij->i", rays, rays[pivot[owner]])
+        farthest = np.minimum.reduceat(cosines, starts)  # cos of the widest angle to the pivot
+        wide |= farthest <= min_cos
+        undecided &= ~wide & (2 * np.arccos(np.clip(farthest, -1.0, 1.0))
+                              >= np.radians(min_angle_deg))
+        if not undecided.any():
+            return wide
+        order = np.lexsort((cosines, owner))  # within each point, the farthest ray first
+        pivot = order[starts]
+    for p in np.flatnonzero(undecided):
+        track_rays = rays[starts[p]:starts[p] + lengths[p]]
+        wide[p] = (track_rays @ track_rays.T).min() <= min_cos
+    return wide
 
 
 def deregister_ill_conditioned(model: Model, options: MapperOptions) -> list[int]:

@@ -6,7 +6,6 @@ from __future__ import annotations
 import numpy as np
 
 import solvers
-from colmap_ext.mapper.guided_matching import nearest_descriptors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 
@@ -34,12 +33,11 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
     """(keypoints, point ids) by matching descriptors against the observations of
     points in nearby registered images, with the ratio test."""
     kps, point_ids = [], []
-    queries = model.descriptors[image_id]
     for other_id in neighbours:
         other_kps, other_points = model.observations(other_id)
-        if len(other_kps) < 2 or len(queries) == 0:
+        if len(other_kps) < 2 or len(model.descriptors[image_id]) == 0:
             continue
-        index, angles = nearest_descriptors(queries, model.descriptors[other_id][other_kps], 2)
+        index, angles = model.nearest.search_with_subset(image_id, other_id, other_kps, 2)
         ok = (angles[:, 0] <= options.max_descriptor_distance) & \
              (angles[:, 0] < MAX_RATIO * angles[:, 1])
         kps.append(np.flatnonzero(ok))

@@ -1,0 +1,111 @@
+"""Nearest SIFT descriptors between two images: exact, by blocks of cosines, so
+memory stays bounded whatever the keypoint counts; and a per-pair store of them for
+guided matching, which asks for the same pairs again."""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Iterator
+
+import numpy as np
+
+# Cosines computed at once (4 MiB of float32 per million).
+QUERY_BLOCK_ENTRIES = 2**22
+
+
+def unit_descriptors(descriptors: np.ndarray) -> np.ndarray:
+    """SIFT descriptors as float32 unit vectors (their dot products are cosines)."""
+    d = descriptors.astype(np.float32)
+    return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+
+
+def _similarity_blocks(queries: np.ndarray,
+                       database: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+    """(first row, cosines of a block of queries against the whole database): blocks of
+    about QUERY_BLOCK_ENTRIES, so memory stays bounded whatever the keypoint counts."""
+    database = unit_descriptors(database)
+    block = max(1, QUERY_BLOCK_ENTRIES // max(len(database), 1))
+    for start in range(0, len(queries), block):
+        yield start, unit_descriptors(queries[start:start + block]) @ database.T
+
+
+def _take_nearest(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the columns of the k largest cosines, largest first, and those cosines:
+    k rounds of argmax (for small k, faster than a partial sort). Overwrites them."""
+    rows = np.arange(len(similarity))
+    index = np.empty((len(similarity), k), np.int64)
+    best = np.empty((len(similarity), k), np.float32)
+    for j in range(k):
+        index[:, j] = np.argmax(similarity, axis=1)
+        best[:, j] = similarity[rows, index[:, j]]
+        similarity[rows, index[:, j]] = -np.inf
+    return index, best
+
+
+def _angles(cosines: np.ndarray) -> np.ndarray:
+    return np.arccos(np.clip(cosines, -1.0, 1.0))
+
+
+def nearest_descriptors(queries: np.ndarray, database: np.ndarray,
+                        k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (q, k) of the k nearest descriptors (uint8 SIFT), nearest first, and
+    their angles (radians)."""
+    k = min(k, len(database))
+    index = np.empty((len(queries), k), np.int64)
+    best = np.empty((len(queries), k), np.float32)
+    for start, similarity in _similarity_blocks(queries, database):
+        index[start:start + len(similarity)], best[start:start + len(similarity)] = \
+            _take_nearest(similarity, k)
+    return index, _angles(best)
+
+
+class NearestDescriptors:
+    """For every keypoint of an image, its k nearest descriptors in another image: the
+    guided matching's candidates (paper, step 4c). Descriptors never change, so each
+    ordered pair of images is searched once and kept, the least recently used pairs
+    given up first beyond `max_bytes`. A registration's search against a neighbour's
+    observed keypoints comes from the same similarities (`search_with_subset`)."""
+
+    def __init__(self, descriptors: dict[int, np.ndarray], k: int, max_bytes: int) -> None:
+        self.descriptors = descriptors
+        self.k = k
+        self.max_bytes = max_bytes
+        self._pairs: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+        self._bytes = 0
+
+    def __call__(self, image_id: int, other_id: int) -> tuple[np.ndarray, np.ndarray]:
+        """(index, angles), each (keypoints of image_id, k), nearest first."""
+        found = self._pairs.get((image_id, other_id))
+        if found is not None:
+            self._pairs.move_to_end((image_id, other_id))
+            return found
+        index, angles = nearest_descriptors(self.descriptors[image_id],
+                                            self.descriptors[other_id], self.k)
+        return self._keep((image_id, other_id), index, angles)
+
+    def search_with_subset(self, image_id: int, other_id: int, subset: np.ndarray,
+                           k: int) -> tuple[np.ndarray, np.ndarray]:
+        """The k nearest among the keypoints `subset` of `other_id` (indices into
+        `subset`, angles), keeping the search over all of them for `__call__`."""
+        queries, database = self.descriptors[image_id], self.descriptors[other_id]
+        k_all, k_subset = min(self.k, len(database)), min(k, len(subset))
+        index, best = np.empty((len(queries), k_all), np.int64), \
+            np.empty((len(queries), k_all), np.float32)
+        sub_index, sub_best = np.empty((len(queries), k_subset), np.int64), \
+            np.empty((len(queries), k_subset), np.float32)
+        for start, similarity in _similarity_blocks(queries, database):
+            rows = slice(start, start + len(similarity))
+            sub_index[rows], sub_best[rows] = _take_nearest(similarity[:, subset], k_subset)
+            index[rows], best[rows] = _take_nearest(similarity, k_all)
+        self._keep((image_id, other_id), index, _angles(best))
+        return sub_index, _angles(sub_best)
+
+    def _keep(self, pair: tuple[int, int], index: np.ndarray,
+              angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        index = index.astype(np.int32)
+        self._pairs[pair] = (index, angles)
+        self._bytes += index.nbytes + angles.nbytes
+        while self._bytes > self.max_bytes and len(self._pairs) > 1:
+            _, (old_index, old_angles) = self._pairs.popitem(last=False)
+            self._bytes -= old_index.nbytes + old_angles.nbytes
+        return index, angles
