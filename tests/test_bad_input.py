@@ -22,6 +22,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from contextlib import closing
 from dataclasses import dataclass, field
 from functools import cached_property
@@ -196,10 +197,23 @@ def assets(tmp_path_factory) -> Assets:
 
 @pytest.fixture(scope="session")
 def commands(assets) -> set[str]:
-    """The subcommands the CLI has now (others are being written)."""
-    result = subprocess.run([*CLI, "--help"], capture_output=True, text=True, timeout=60,
-                            env={**os.environ, "HOME": str(assets.home), "MPLCONFIGDIR": str(assets.home)})
-    return set(re.findall(r"^    (\w+)\s", result.stdout, re.MULTILINE))
+    """The subcommands `colmap-ext --help` lists, each of which starts (`colmap-ext NAME
+    --help` imports its module). A CLI or a subcommand that cannot start, e.g. on an import
+    error, fails every case instead of skipping it."""
+    def run(*args: str) -> subprocess.CompletedProcess:
+        return subprocess.run([*CLI, *args], capture_output=True, text=True, timeout=120,
+                              env={**os.environ, "HOME": str(assets.home),
+                                   "MPLCONFIGDIR": str(assets.home)})
+
+    result = run("--help")
+    assert result.returncode == 0, f"`colmap-ext --help` is broken:\n{result.stderr}"
+    names = sorted(set(re.findall(r"^    (\w+)\s", result.stdout, re.MULTILINE)))
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        helps = dict(zip(names, pool.map(lambda name: run(name, "--help"), names)))
+    broken = {name: shown.stderr.strip().splitlines()[-1:] for name, shown in helps.items()
+              if shown.returncode != 0}
+    assert not broken, f"subcommands that cannot start: {broken}"
+    return set(names)
 
 
 @pytest.fixture(scope="session")
@@ -287,7 +301,7 @@ class Case:
     build: Callable[[Env], list[str]]  # makes the inputs, returns the arguments
     message: str  # a fragment of the last stderr line (of stdout when code is 0)
     code: int = 1
-    command: str = "mapper"  # skipped while the CLI has no such subcommand
+    command: str = "mapper"  # the subcommand run: the case fails if the CLI lacks it
     unprivileged: bool = False  # relies on file permissions: run as nobody when root
     run: Callable[[Env, list[str]], subprocess.CompletedProcess] | None = None  # custom runner
     after: Callable[[Env, subprocess.CompletedProcess], None] | None = None  # more checks
@@ -497,7 +511,19 @@ def _(env):
 
 
 def _colmap38_after(env, result):
+    """Every image of the 3.8 database in one model, with the database's intrinsics."""
+    import pycolmap
+
     env.notes.append(f"the COLMAP 3.8 database was {env.assets.colmap38[2]}")
+    with closing(sqlite3.connect(env.assets.colmap38[0])) as conn:
+        names = {row[0] for row in conn.execute("SELECT name FROM images")}
+        params = np.frombuffer(conn.execute("SELECT params FROM cameras").fetchone()[0], np.float64)
+    assert f"Registered {len(names)} images in 1 model" in result.stdout, result.stdout
+    assert sorted(p.name for p in env.out.iterdir()) == ["0", "mapper_summary.json"]
+    model = pycolmap.Reconstruction(env.out / "0")
+    assert {image.name for image in model.images.values() if image.has_pose} == names
+    [camera] = model.cameras.values()
+    np.testing.assert_array_equal(camera.params, params)
 
 
 @case("db_colmap38", "Registered", code=0, after=_colmap38_after)
@@ -537,7 +563,16 @@ def _(env):
     return env.mapper(env.small_db(), None, None, "--output_type", "PLY")
 
 
-@case("init_image_not_in_database", "init")
+NO_IMAGE_99 = "--Mapper.init_image_id1/2: no image with id 99 in the database"
+
+
+def _says_exactly(message: str) -> Callable:
+    def after(env, result):
+        assert message_lines(result.stderr) == [f"colmap-ext: error: {message}"], result.stderr
+    return after
+
+
+@case("init_image_not_in_database", NO_IMAGE_99, after=_says_exactly(NO_IMAGE_99))
 def _(env):
     return env.mapper(env.small_db(), None, None, "--Mapper.init_image_id1", "99",
                       "--Mapper.init_image_id2", "1")
@@ -965,8 +1000,7 @@ def message_lines(stderr: str) -> list[str]:
 
 @pytest.mark.parametrize("case", CASES, ids=[c.id for c in CASES])
 def test_bad_input(case: Case, assets, commands, unprivileged, tmp_path, request):
-    if case.command not in commands:
-        pytest.skip(f"`colmap-ext {case.command}` does not exist yet")
+    assert case.command in commands, f"`colmap-ext --help` lists no {case.command} subcommand"
     if case.xfail:
         request.applymarker(pytest.mark.xfail(reason=case.xfail, strict=True))
     as_nobody = case.unprivileged and IS_ROOT
@@ -1025,8 +1059,13 @@ def check(case: Case, env: Env, result: subprocess.CompletedProcess, before: dic
         print(note)
 
 
-def test_case_table_is_large_enough():
+def test_case_table_covers_every_subcommand(commands):
+    """The help lists every subcommand the CLI defines, and each of them has cases."""
+    from colmap_ext.cli import COMMANDS
+
     assert len(CASES) >= 25
+    assert commands == set(COMMANDS), "`colmap-ext --help` does not list the CLI's subcommands"
+    assert {c.command for c in CASES} == commands, "a subcommand without cases, or cases without one"
 
 
 def test_same_seed_same_model_from_the_cli(assets, tmp_path):

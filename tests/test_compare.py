@@ -12,9 +12,10 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from PIL import Image
 
 from colmap_ext import compare as compare_module
-from colmap_ext.compare import compare
+from colmap_ext.compare import MAPPERS, compare
 from colmap_ext.errors import UserError
 from colmap_ext.evaluate import evaluate
 from colmap_ext.ground_truth import read_ground_truth
@@ -23,6 +24,14 @@ from colmap_ext.synthetic import ring_scene, scene_points, write_ground_truth, w
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin")
 MAPPER_KEYS = ("time_s", "num_registered", "num_images", "num_models", "num_points3D",
                "mean_track_length", "mean_reprojection_error")
+# How far COLMAP's models may lie from ours on the synthetic ring: about 3x the worst of 24
+# comparisons (ring seeds 3, 4, 5; compare seeds 0 to 7), both COLMAP mappers.
+MAX_ROTATION_DISTANCE_DEG = 0.1  # worst 0.033 (incremental), 0.028 (global)
+MAX_CENTRE_DISTANCE = 0.0025  # worst 0.00082 (incremental), 0.00066 (global), camera spreads
+# errors.png: 12 x 5 inches at 120 dpi; matplotlib's first three colours, C0 to C2.
+FIGURE_SIZE = (1440, 600)
+MAPPER_COLOURS = ((0x1F, 0x77, 0xB4), (0xFF, 0x7F, 0x0E), (0x2C, 0xA0, 0x2C))
+MIN_PIXELS_PER_MAPPER = 1000  # measured 2555 to 4792 pixels of exactly its colour
 
 
 def sha256(path: Path) -> str:
@@ -53,6 +62,17 @@ def compared(synthetic, tmp_path_factory):
                      ground_truth=folder / "gt", mappers="ours,colmap_incremental", seed=0,
                      progress=False)
     return output, report, before
+
+
+@pytest.fixture(scope="module")
+def compared_all(synthetic, tmp_path_factory, record_figures):
+    """compare with its default mapper list (all three), and the figures it drew."""
+    folder, _ = synthetic
+    output = tmp_path_factory.mktemp("cmp_all") / "CMP"
+    with record_figures() as figures:
+        report = compare(folder / "database.db", folder / "images", output,
+                         ground_truth=folder / "gt", seed=0, progress=False)
+    return output, report, figures
 
 
 def test_writes_every_file(compared):
@@ -143,3 +163,83 @@ def test_ground_truth_of_other_images_is_refused_before_any_work(synthetic, tmp_
         compare(folder / "database.db", folder / "images", tmp_path / "cmp",
                 ground_truth=tmp_path / "gt")
     assert not (tmp_path / "cmp").exists()
+
+
+def test_default_runs_every_mapper_including_global(compared_all, synthetic):
+    """Without --mappers, COLMAP's global mapper runs too: all images, intrinsics held fixed."""
+    output, report, _ = compared_all
+    _, scene = synthetic
+    assert list(report["mappers"]) == list(MAPPERS) == ["ours", "colmap_incremental", "colmap_global"]
+    for name, entry in report["mappers"].items():
+        assert "error" not in entry, entry.get("error")
+        assert entry["num_registered"] == entry["num_images"] == scene.num_images, name
+        assert entry["R_err_max_deg"] < 0.2, name
+        for file in MODEL_FILES:
+            assert (output / name / "0" / file).is_file(), f"{name}/0/{file} missing"
+        for camera in pycolmap.Reconstruction(output / name / "0").cameras.values():
+            np.testing.assert_array_equal(camera.params, scene.camera.params)
+    assert "| colmap_global " in (output / "report.md").read_text()
+
+
+@pytest.mark.parametrize("run", ["compared", "compared_all"])
+def test_model_distances_are_small_on_synthetic_data(run, request, synthetic):
+    """COLMAP's models of the ring (0.5 px noise) lie within a few hundredths of a degree
+    and a thousandth of the camera spread of ours."""
+    _, report, _ = request.getfixturevalue(run)
+    _, scene = synthetic
+    distance = report["model_comparison"]
+    assert distance["reference"] == "ours"
+    assert set(distance["mappers"]) == set(report["mappers"]) - {"ours"}
+    for name, entry in distance["mappers"].items():
+        assert entry["num_common_images"] == scene.num_images, name
+        assert entry["rotation_error_median_deg"] <= entry["rotation_error_max_deg"] \
+            < MAX_ROTATION_DISTANCE_DEG, name
+        assert entry["centre_error_median"] <= entry["centre_error_max"] < MAX_CENTRE_DISTANCE, name
+
+
+def test_errors_png_draws_every_mappers_errors(compared_all, assert_figure_shows):
+    """errors.png is the figure of the report's per-image errors, one colour per mapper."""
+    output, report, figures = compared_all
+    [(figure, path)] = figures
+    assert path == output / "errors.png"
+    assert_figure_shows(figure, report["mappers"])
+    with Image.open(path) as image:
+        assert image.size == FIGURE_SIZE
+        pixels = np.asarray(image.convert("RGB")).reshape(-1, 3)
+    for colour in MAPPER_COLOURS:  # each mapper's lines and markers are on the image
+        assert np.count_nonzero((pixels == colour).all(axis=1)) > MIN_PIXELS_PER_MAPPER, colour
+
+
+def test_failing_mapper_is_reported_and_the_others_still_run(synthetic, tmp_path, monkeypatch,
+                                                              record_figures, assert_figure_shows):
+    """A mapper that raises gets a failed row and no model (an earlier one is removed);
+    the others run, are compared and plotted without it."""
+    folder, scene = synthetic
+
+    def explode(*args, **kwargs):
+        raise RuntimeError("solver exploded\nsecond line of the message")
+
+    monkeypatch.setattr(pycolmap, "incremental_mapping", explode)  # COLMAP's mapper fails
+    output = tmp_path / "CMP"
+    (output / "colmap_incremental" / "0").mkdir(parents=True)  # from an earlier comparison
+    with record_figures() as figures:
+        report = compare(folder / "database.db", folder / "images", output,
+                         ground_truth=folder / "gt", seed=0, progress=False, overwrite=True)
+    failed = report["mappers"]["colmap_incremental"]
+    assert failed["error"] == "RuntimeError: solver exploded"
+    assert (failed["num_registered"], failed["num_models"], failed["num_points3D"]) == (0, 0, 0)
+    assert failed["models"] == [] and "R_err_max_deg" not in failed
+    assert not (output / "colmap_incremental" / "0").exists()
+    for name in ("ours", "colmap_global"):
+        assert report["mappers"][name]["num_registered"] == scene.num_images
+    assert set(report["model_comparison"]["mappers"]) == {"colmap_global"}
+
+    markdown = (output / "report.md").read_text()
+    row = next(line for line in markdown.splitlines() if line.startswith("| colmap_incremental "))
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    assert cells[:6] == ["colmap_incremental", "failed: RuntimeError: solver exploded", "0", "0",
+                         "–", "–"]
+    assert cells[7:] == ["–"] * 4  # no pose errors
+    assert "time / COLMAP incremental" not in markdown  # no ratio to a failed mapper's time
+    [(figure, _)] = figures
+    assert_figure_shows(figure, {name: report["mappers"][name] for name in ("ours", "colmap_global")})

@@ -292,12 +292,16 @@ def test_arguments_match_main() -> None:
         parser.parse_args(["--model_path", "m", "--ground_truth", "g", "--format", "bundler"])
 
 
-def test_main_prints_table_writes_json_and_plot(tmp_path: Path, capsys) -> None:
+def test_main_prints_table_writes_json_and_plot(tmp_path: Path, capsys, record_figures,
+                                                assert_figure_shows) -> None:
+    """The plot draws the report's numbers, labelled with the model path."""
     estimate = {name: pose for name, pose in ring().items() if name != "img04.png"}
+    estimate["img03.png"] = rotated_in_place(estimate["img03.png"], rotation([0, 0, 0.01]))
     model_path = write_model(tmp_path / "sparse" / "0", estimate)
     gt_path = write_par(tmp_path / "ring_par.txt", ring())
     output, plot = tmp_path / "out" / "report.json", tmp_path / "out" / "errors.png"
-    returned = main(model_path, gt_path, output=output, plot=plot)
+    with record_figures() as figures:
+        returned = main(model_path, gt_path, output=output, plot=plot)
     table = capsys.readouterr().out
     assert "img04.png" in table and "unregistered" in table
     assert "registered: 7 / 8" in table
@@ -309,6 +313,10 @@ def test_main_prints_table_writes_json_and_plot(tmp_path: Path, capsys) -> None:
     with Image.open(plot) as image:
         assert image.format == "PNG" and image.size[0] > 600
     assert sorted(p.name for p in output.parent.iterdir()) == ["errors.png", "report.json"]
+    [(figure, path)] = figures
+    assert path == plot
+    assert_figure_shows(figure, {str(model_path): report})
+    assert report["R_err_max_deg"] == pytest.approx(np.degrees(0.01))  # the plot is not all zeros
 
 
 def test_main_through_cli_style_keywords(tmp_path: Path) -> None:
@@ -360,15 +368,23 @@ def test_json_write_failure_is_a_user_error_and_leaves_nothing(tmp_path: Path) -
 # --- the plot -----------------------------------------------------------------------------
 
 
-def test_plot_of_several_reports(tmp_path: Path) -> None:
+def test_plot_of_several_reports(tmp_path: Path, record_figures, assert_figure_shows) -> None:
+    """Each report's per-image errors are drawn as they are, in its own colour, whatever the format."""
     partial = {name: pose for name, pose in ring().items() if name != "img02.png"}
+    partial["img05.png"] = pose_at(partial["img05.png"].rotation,
+                                   partial["img05.png"].inverse().translation + [0.05, 0, 0])
     reports = {"perfect": evaluate(model(ring()), ground_truth(ring())),
                "partial": evaluate(model(partial), ground_truth(ring()))}
-    plot_errors(reports, tmp_path / "compare.png")
-    plot_errors(reports, tmp_path / "compare.pdf")
+    with record_figures() as figures:
+        plot_errors(reports, tmp_path / "compare.png")
+        plot_errors(reports, tmp_path / "compare.pdf")
     with Image.open(tmp_path / "compare.png") as image:
         assert image.format == "PNG"
     assert (tmp_path / "compare.pdf").read_bytes().startswith(b"%PDF")
+    assert [path.name for _, path in figures] == ["compare.png", "compare.pdf"]
+    for figure, _ in figures:
+        assert_figure_shows(figure, reports)
+    assert reports["partial"]["C_err_max"] > 0.01  # non-zero data to compare
 
 
 def test_plot_unknown_format_is_a_user_error(tmp_path: Path) -> None:
