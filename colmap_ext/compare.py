@@ -44,6 +44,8 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
+from colmap_ext.colmap_mappers import (colmap_global_options, colmap_incremental_options,
+                                       fix_intrinsics_in_database)
 from colmap_ext.database import check_database_file, copy_database
 from colmap_ext.errors import UserError
 from colmap_ext.features import quiet_colmap_logs
@@ -168,50 +170,10 @@ def _write_largest_first(reconstructions: dict[int, pycolmap.Reconstruction],
     return models
 
 
-def _fix_intrinsics_in_database(database_path: Path) -> tuple[set[int], int]:
-    """Mark every camera's intrinsics as known; returns the camera ids and the image count."""
-    with pycolmap.Database.open(database_path) as db:
-        cameras = db.read_all_cameras()
-        for camera in cameras:
-            if not camera.has_prior_focal_length:
-                camera.has_prior_focal_length = True
-                db.update_camera(camera)
-        return {camera.camera_id for camera in cameras}, db.num_images()
-
-
-def colmap_incremental_options(camera_ids: set[int], seed: int,
-                               num_threads: int = -1) -> pycolmap.IncrementalPipelineOptions:
-    """COLMAP's incremental mapper with every camera's intrinsics held fixed."""
-    options = pycolmap.IncrementalPipelineOptions()
-    options.constant_cameras = set(camera_ids)
-    options.ba_refine_focal_length = False
-    options.ba_refine_principal_point = False
-    options.ba_refine_extra_params = False
-    options.random_seed = seed
-    options.num_threads = num_threads
-    return options
-
-
-def colmap_global_options(seed: int, num_threads: int = -1) -> pycolmap.GlobalPipelineOptions:
-    """COLMAP's global mapper (GLOMAP) with the intrinsics held fixed: its bundle adjustment
-    is the only step of pycolmap 4.2.1's global pipeline that changes them."""
-    options = pycolmap.GlobalPipelineOptions()
-    bundle_adjustment = options.mapper.bundle_adjustment
-    bundle_adjustment.refine_focal_length = False
-    bundle_adjustment.refine_principal_point = False
-    bundle_adjustment.refine_extra_params = False
-    # pycolmap's wheel has no CUDA: asking for the GPU only adds a warning per stage.
-    bundle_adjustment.ceres.use_gpu = False
-    options.mapper.global_positioning.use_gpu = False
-    options.random_seed = seed
-    options.num_threads = num_threads
-    return options
-
-
 def _run_colmap_incremental(database_path: Path, image_path: Path, output_path: Path, seed: int,
                             progress: bool, num_threads: int,
                             timing: _Stopwatch) -> list[pycolmap.Reconstruction]:
-    camera_ids, num_images = _fix_intrinsics_in_database(database_path)
+    camera_ids, num_images = fix_intrinsics_in_database(database_path)
     options = colmap_incremental_options(camera_ids, seed, num_threads)
     bar = tqdm(total=num_images, desc="registered", unit="image", disable=not progress)
 
@@ -233,7 +195,7 @@ def _run_colmap_incremental(database_path: Path, image_path: Path, output_path: 
 def _run_colmap_global(database_path: Path, image_path: Path, output_path: Path, seed: int,
                        progress: bool, num_threads: int,
                        timing: _Stopwatch) -> list[pycolmap.Reconstruction]:
-    _fix_intrinsics_in_database(database_path)
+    fix_intrinsics_in_database(database_path)
     options = colmap_global_options(seed, num_threads)
     staging = Path(tempfile.mkdtemp(prefix=".colmap-ext-global-", dir=database_path.parent))
     try:

@@ -22,6 +22,7 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import pycolmap
 
+from colmap_ext.angles import rotation_angles_deg, vector_angles_deg
 from colmap_ext.errors import UserError
 from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth, read_model
 from colmap_ext.plots import plot_errors
@@ -144,19 +145,6 @@ def pose_errors(gt_poses: list[pycolmap.Rigid3d], est_poses: list[pycolmap.Rigid
         "C_err": np.linalg.norm(scale * C_est - C_gt, axis=1) / unit,
         "C_err_aligned": np.linalg.norm(align_similarity(C_est, C_gt) - C_gt, axis=1) / unit,
     }
-
-
-def rotation_angles_deg(R: np.ndarray) -> np.ndarray:
-    """Angles of rotations (n,3,3) in degrees, as atan2(sin, cos): exact near 0 where arccos is not."""
-    cos = (np.trace(R, axis1=1, axis2=2) - 1) / 2
-    skew = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
-    sin = np.linalg.norm(skew, axis=1) / 2
-    return np.degrees(np.arctan2(sin, cos))
-
-
-def vector_angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Angles between rows of a and b (n,3) in degrees, as atan2(|a x b|, a.b)."""
-    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
 
 
 def align_similarity(source: np.ndarray, target: np.ndarray) -> np.ndarray:
