@@ -6,8 +6,10 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 # Cosines computed at once: 4 MiB of float32, which stays in cache while the
 # nearest are taken (smaller and larger blocks measured slower).
@@ -65,48 +67,66 @@ class NearestDescriptors:
     guided matching's candidates (paper, step 4c). Descriptors never change, so each
     ordered pair of images is searched once and kept, the least recently used pairs
     given up first beyond `max_bytes`. A registration's search against a neighbour's
-    observed keypoints comes from the same similarities (`search_with_subset`)."""
+    observed keypoints comes from the same cosines (`search_subsets`). Searches against
+    several images run in parallel, one per thread, each with single-threaded BLAS:
+    on a loaded machine that is several times faster than BLAS's own threads."""
 
-    def __init__(self, descriptors: dict[int, np.ndarray], k: int, max_bytes: int) -> None:
+    def __init__(self, descriptors: dict[int, np.ndarray], k: int, max_bytes: int,
+                 num_threads: int) -> None:
         self.descriptors = descriptors
         self.k = k
         self.max_bytes = max_bytes
+        self.num_threads = max(1, num_threads)
         self._pairs: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._bytes = 0
 
     def __call__(self, image_id: int, other_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(index, angles), each (keypoints of image_id, k), nearest first."""
-        found = self._pairs.get((image_id, other_id))
-        if found is not None:
-            self._pairs.move_to_end((image_id, other_id))
-            return found
-        index, angles = nearest_descriptors(self.descriptors[image_id],
-                                            self.descriptors[other_id], self.k)
-        return self._keep((image_id, other_id), index, angles)
+        self.prefetch(image_id, [other_id])
+        self._pairs.move_to_end((image_id, other_id))
+        return self._pairs[(image_id, other_id)]
 
-    def search_with_subset(self, image_id: int, other_id: int, subset: np.ndarray,
-                           k: int) -> tuple[np.ndarray, np.ndarray]:
-        """The k nearest among the keypoints `subset` of `other_id` (indices into
-        `subset`, angles), keeping the search over all of them for `__call__`."""
+    def prefetch(self, image_id: int, other_ids: list[int]) -> None:
+        """Search the pairs (image_id, other) not kept yet, in parallel."""
+        missing = [(other_id, np.zeros(0, np.int64)) for other_id in other_ids
+                   if (image_id, other_id) not in self._pairs]
+        self.search_subsets(image_id, missing, 0)
+
+    def search_subsets(self, image_id: int, subsets: list[tuple[int, np.ndarray]],
+                       k: int) -> list[tuple[np.ndarray, np.ndarray]]:
+        """For each (other image, keypoints of it), the k nearest among those keypoints
+        (indices into them, angles), keeping each search over all of them."""
+        def search(other_id: int, subset: np.ndarray):
+            return self._search(image_id, other_id, subset, k)
+
+        if len(subsets) > 1 and self.num_threads > 1:
+            with threadpool_limits(1, user_api="blas"), \
+                    ThreadPoolExecutor(min(self.num_threads, len(subsets))) as pool:
+                results = list(pool.map(search, *zip(*subsets)))
+        else:
+            results = [search(other_id, subset) for other_id, subset in subsets]
+        for (other_id, _), (index, angles, _) in zip(subsets, results):
+            self._keep((image_id, other_id), index, angles)
+        return [found for _, _, found in results]
+
+    def _search(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
+        """(index, angles) over all of `other_id`, and the k nearest within `subset`."""
         queries, database = self.descriptors[image_id], self.descriptors[other_id]
         k_all, k_subset = min(self.k, len(database)), min(k, len(subset))
-        index, best = np.empty((len(queries), k_all), np.int64), \
-            np.empty((len(queries), k_all), np.float32)
-        sub_index, sub_best = np.empty((len(queries), k_subset), np.int64), \
-            np.empty((len(queries), k_subset), np.float32)
+        index = np.empty((len(queries), k_all), np.int32)
+        best = np.empty((len(queries), k_all), np.float32)
+        sub_index = np.empty((len(queries), k_subset), np.int64)
+        sub_best = np.empty((len(queries), k_subset), np.float32)
         for start, similarity in _similarity_blocks(queries, database):
             rows = slice(start, start + len(similarity))
-            sub_index[rows], sub_best[rows] = _take_nearest(similarity[:, subset], k_subset)
+            if k_subset:
+                sub_index[rows], sub_best[rows] = _take_nearest(similarity[:, subset], k_subset)
             index[rows], best[rows] = _take_nearest(similarity, k_all)
-        self._keep((image_id, other_id), index, _angles(best))
-        return sub_index, _angles(sub_best)
+        return index, _angles(best), (sub_index, _angles(sub_best))
 
-    def _keep(self, pair: tuple[int, int], index: np.ndarray,
-              angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        index = index.astype(np.int32)
+    def _keep(self, pair: tuple[int, int], index: np.ndarray, angles: np.ndarray) -> None:
         self._pairs[pair] = (index, angles)
         self._bytes += index.nbytes + angles.nbytes
         while self._bytes > self.max_bytes and len(self._pairs) > 1:
             _, (old_index, old_angles) = self._pairs.popitem(last=False)
             self._bytes -= old_index.nbytes + old_angles.nbytes
-        return index, angles

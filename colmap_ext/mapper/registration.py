@@ -32,12 +32,14 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
                                options: MapperOptions) -> tuple[np.ndarray, np.ndarray]:
     """(keypoints, point ids) by matching descriptors against the observations of
     points in nearby registered images, with the ratio test."""
+    if len(model.descriptors[image_id]) == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    observed = [(other_id, *model.observations(other_id)) for other_id in neighbours]
+    observed = [o for o in observed if len(o[1]) >= 2]
+    found = model.nearest.search_subsets(image_id, [(other_id, other_kps)
+                                                    for other_id, other_kps, _ in observed], 2)
     kps, point_ids = [], []
-    for other_id in neighbours:
-        other_kps, other_points = model.observations(other_id)
-        if len(other_kps) < 2 or len(model.descriptors[image_id]) == 0:
-            continue
-        index, angles = model.nearest.search_with_subset(image_id, other_id, other_kps, 2)
+    for (_, _, other_points), (index, angles) in zip(observed, found):
         ok = (angles[:, 0] <= options.max_descriptor_distance) & \
              (angles[:, 0] < MAX_RATIO * angles[:, 1])
         kps.append(np.flatnonzero(ok))

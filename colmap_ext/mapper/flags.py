@@ -1,0 +1,342 @@
+"""Every option of `colmap mapper`, in one table: COLMAP 3.8's flags (`colmap mapper -h`)
+and 4.x's (the fields of `pycolmap.IncrementalPipelineOptions`, its `mapper` and
+`triangulation`), under COLMAP's names.
+
+The command-line flags, the keys of a `--project_path` file and the reading of a
+pycolmap options object all come from `FLAGS`. An option either sets a field of
+`MapperOptions` (its default is that field's), or does not apply to this mapper: it is
+accepted, and a value other than its default is named once in the log with the reason.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from colmap_ext.errors import UserError
+from colmap_ext.mapper.options import MapperOptions
+
+logger = logging.getLogger(__name__)
+
+# Command-line arguments and top-level project-file keys that are paths, not options.
+PATH_KEYS = ("database_path", "image_path", "input_path", "output_path", "image_list_path")
+
+
+def parse_bool(text: str) -> bool:
+    """COLMAP's booleans: 1/0, true/false (any case)."""
+    value = {"1": True, "true": True, "0": False, "false": False}.get(text.strip().lower())
+    if value is None:
+        raise ValueError(f"expected 0, 1, true or false, got {text!r}")
+    return value
+
+
+def _seed(value: int) -> int | None:
+    return None if value < 0 else value
+
+
+def _iterations(value: int) -> int | None:
+    return None if value <= 0 else value  # COLMAP 4.x: -1 is the solver's default
+
+
+@dataclass(frozen=True)
+class Flag:
+    name: str  # COLMAP's: "random_seed" (top level) or "Mapper.<key>"
+    type: type  # int, float, bool or str
+    pycolmap: str | None  # its attribute in IncrementalPipelineOptions, None: COLMAP 3.8 only
+    field: str | None = None  # the MapperOptions field it sets; None: not applicable
+    help: str = ""  # what it does here (applied) or why it does not apply
+    default: Any = None  # not applicable: the value that asks for nothing we do not do
+    aliases: tuple[str, ...] = ()  # the same option's name in other COLMAP versions or ours
+    convert: Callable[[Any], Any] | None = None  # COLMAP's value -> the field's; None keeps ours
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return (self.name, *self.aliases)
+
+    @property
+    def effective_default(self) -> Any:
+        """The value used when the option is not given."""
+        if self.field is None:
+            return self.default
+        return MapperOptions.__dataclass_fields__[self.field].default
+
+    def parse(self, text: str) -> Any:
+        """The option's value from its text (command line or project file)."""
+        if self.type is bool:
+            return parse_bool(text)
+        return self.type(text)
+
+
+# Reasons shared by several options.
+_INTRINSICS = "the intrinsics are known and held constant, as the method assumes"
+_TRIANGULATOR = ("points come from the method's guided matching (features compatible in at "
+                 "least three images), not from COLMAP's triangulator")
+_BA_SCHEDULE = ("global adjustment runs whenever the model grows by --Mapper.ba_global_frames_"
+                "ratio, each adjustment followed by pruning")
+_GPU = "bundle adjustment runs on the CPU (pycolmap's Ceres)"
+_CONTINUE = "continuing an existing model (--input_path) is not supported yet"
+_NO_PRIORS = "position priors are not used"
+
+
+def _na(name: str, type_: type, pycolmap: str | None, default: Any, reason: str,
+        aliases: tuple[str, ...] = ()) -> Flag:
+    return Flag(name, type_, pycolmap, help=reason, default=default, aliases=aliases)
+
+
+FLAGS: tuple[Flag, ...] = (
+    # ---- top level
+    Flag("random_seed", int, "random_seed", "seed", "RANSAC seed; -1: unseeded. With a seed, "
+         "two runs give the same model bit for bit", aliases=("seed",), convert=_seed),
+    _na("log_to_stderr", bool, None, False, "log lines always go to stderr"),
+    _na("log_level", int, None, 2, "COLMAP's glog verbosity; this mapper logs progress and "
+        "a summary"),
+    # ---- the pipeline (IncrementalPipelineOptions)
+    Flag("Mapper.min_num_matches", int, "min_num_matches", "two_view_min_num_inliers",
+         "verified matches an image pair needs to be used"),
+    _na("Mapper.ignore_watermarks", bool, "ignore_watermarks", False,
+        "the database's verified matches are used as they are"),
+    Flag("Mapper.multiple_models", bool, "multiple_models", "multiple_models",
+         "start new models from the images left over; 0: keep only the first model"),
+    Flag("Mapper.max_num_models", int, "max_num_models", "max_num_models",
+         "most models reconstructed"),
+    _na("Mapper.max_model_overlap", int, "max_model_overlap", 20,
+        "models share no images; models that fell apart are joined where two images agree"),
+    Flag("Mapper.min_model_size", int, "min_model_size", "min_model_size",
+         "fewest registered images a model needs to be kept"),
+    Flag("Mapper.init_image_id1", int, "init_image_id1", "init_image_id1",
+         "first image of the initial pair; -1: the mapper chooses"),
+    Flag("Mapper.init_image_id2", int, "init_image_id2", "init_image_id2",
+         "second image of the initial pair; -1: the mapper chooses"),
+    _na("Mapper.init_num_trials", int, "init_num_trials", 200,
+        "every candidate pair is tried once; a pair that fails is not tried again"),
+    _na("Mapper.structure_less_registration_fallback", bool,
+        "structure_less_registration_fallback", True,
+        "images register by P3P on 2D-3D correspondences only"),
+    _na("Mapper.structure_less_registration_only", bool, "structure_less_registration_only",
+        False, "images register by P3P on 2D-3D correspondences only"),
+    Flag("Mapper.extract_colors", bool, "extract_colors", "extract_colors",
+         "read the points' colours from the images"),
+    Flag("Mapper.num_threads", int, "num_threads", "num_threads",
+         "threads (Ceres, BLAS); -1: all cores", aliases=("num_threads",)),
+    _na("Mapper.min_focal_length_ratio", float, "min_focal_length_ratio", 0.1, _INTRINSICS),
+    _na("Mapper.max_focal_length_ratio", float, "max_focal_length_ratio", 10.0, _INTRINSICS),
+    _na("Mapper.max_extra_param", float, "max_extra_param", 1.0, _INTRINSICS),
+    _na("Mapper.ba_refine_focal_length", bool, "ba_refine_focal_length", False, _INTRINSICS),
+    _na("Mapper.ba_refine_principal_point", bool, "ba_refine_principal_point", False,
+        _INTRINSICS),
+    _na("Mapper.ba_refine_extra_params", bool, "ba_refine_extra_params", False, _INTRINSICS),
+    _na("Mapper.ba_refine_sensor_from_rig", bool, "ba_refine_sensor_from_rig", True,
+        "each image is its own rig: there is no sensor-from-rig pose to refine"),
+    _na("Mapper.ba_min_num_residuals_for_cpu_multi_threading", int,
+        "ba_min_num_residuals_for_cpu_multi_threading", 50000,
+        "Ceres uses --Mapper.num_threads threads",
+        aliases=("Mapper.ba_min_num_residuals_for_multi_threading",)),
+    Flag("Mapper.ba_local_num_images", int, "mapper.ba_local_num_images",
+         "ba_local_num_images", "images in a local bundle adjustment: the new one and its "
+         "most connected registered images"),
+    _na("Mapper.ba_local_function_tolerance", float, "ba_local_function_tolerance", 0.0,
+        "local and global adjustment share --Mapper.ba_global_function_tolerance"),
+    Flag("Mapper.ba_local_max_num_iterations", int, "ba_local_max_num_iterations",
+         "ba_local_max_iterations", "Ceres iterations of a local adjustment; -1: ours",
+         convert=_iterations),
+    Flag("Mapper.ba_global_frames_ratio", float, "ba_global_frames_ratio",
+         "ba_global_images_ratio", "global adjustment whenever the model has grown by this "
+         "ratio", aliases=("Mapper.ba_global_images_ratio",)),
+    _na("Mapper.ba_global_points_ratio", float, "ba_global_points_ratio", 1.1, _BA_SCHEDULE),
+    _na("Mapper.ba_global_frames_freq", int, "ba_global_frames_freq", 500, _BA_SCHEDULE,
+        aliases=("Mapper.ba_global_images_freq",)),
+    _na("Mapper.ba_global_points_freq", int, "ba_global_points_freq", 250000, _BA_SCHEDULE),
+    Flag("Mapper.ba_global_function_tolerance", float, "ba_global_function_tolerance",
+         "ba_function_tolerance", "Ceres stops when an iteration lowers the cost by less "
+         "than this fraction (local and global adjustment); 0: at the iteration limit"),
+    Flag("Mapper.ba_global_max_num_iterations", int, "ba_global_max_num_iterations",
+         "ba_global_max_iterations", "Ceres iterations of a global adjustment; -1: ours",
+         convert=_iterations),
+    _na("Mapper.ba_global_max_refinements", int, "ba_global_max_refinements", 5, _BA_SCHEDULE),
+    _na("Mapper.ba_global_max_refinement_change", float, "ba_global_max_refinement_change",
+        0.0005, _BA_SCHEDULE),
+    _na("Mapper.ba_local_max_refinements", int, "ba_local_max_refinements", 2, _BA_SCHEDULE),
+    _na("Mapper.ba_local_max_refinement_change", float, "ba_local_max_refinement_change",
+        0.001, _BA_SCHEDULE),
+    _na("Mapper.ba_use_gpu", bool, "ba_use_gpu", False, _GPU),
+    _na("Mapper.ba_gpu_index", str, "ba_gpu_index", "-1", _GPU),
+    _na("Mapper.ba_global_use_pba", bool, None, False, _GPU),
+    _na("Mapper.ba_global_pba_gpu_index", int, None, -1, _GPU),
+    _na("Mapper.ba_local_backend", str, "ba_local_backend", "CERES", _GPU),
+    _na("Mapper.ba_global_backend", str, "ba_global_backend", "CERES", _GPU),
+    _na("Mapper.use_prior_position", bool, "use_prior_position", False, _NO_PRIORS),
+    _na("Mapper.use_robust_loss_on_prior_position", bool, "use_robust_loss_on_prior_position",
+        False, _NO_PRIORS),
+    _na("Mapper.prior_position_loss_scale", float, "prior_position_loss_scale", 7.815,
+        _NO_PRIORS),
+    _na("Mapper.snapshot_path", str, "snapshot_path", "", "snapshots are not written yet"),
+    _na("Mapper.snapshot_frames_freq", int, "snapshot_frames_freq", 0,
+        "snapshots are not written yet", aliases=("Mapper.snapshot_images_freq",)),
+    _na("Mapper.load_all_images", bool, "load_all_images", False,
+        "a model holds its registered images"),
+    _na("Mapper.fix_existing_frames", bool, "fix_existing_frames", False, _CONTINUE,
+        aliases=("Mapper.fix_existing_images",)),
+    _na("Mapper.max_runtime_seconds", int, "max_runtime_seconds", -1,
+        "the mapper runs to the end"),
+    # ---- the incremental mapper (IncrementalPipelineOptions.mapper)
+    Flag("Mapper.init_min_num_inliers", int, "mapper.init_min_num_inliers",
+         "init_min_num_inliers", "inliers the initial pair's relative pose needs"),
+    Flag("Mapper.init_max_error", float, "mapper.init_max_error", "two_view_max_error_px",
+         "error threshold (px) of the 5-point RANSAC: initial pair and pairs the database "
+         "left unverified"),
+    _na("Mapper.init_max_forward_motion", float, "mapper.init_max_forward_motion", 0.95,
+        "the initial pair is judged by the median angle of its rays "
+        "(--Mapper.init_min_tri_angle)"),
+    Flag("Mapper.init_min_tri_angle", float, "mapper.init_min_tri_angle",
+         "init_min_tri_angle_deg", "median triangulation angle (deg) the initial pair needs"),
+    _na("Mapper.init_max_reg_trials", int, "mapper.init_max_reg_trials", 2,
+        "a pair that fails to initialise is not tried again"),
+    Flag("Mapper.abs_pose_max_error", float, "mapper.abs_pose_max_error",
+         "abs_pose_max_error_px", "reprojection threshold (px) of the P3P RANSAC"),
+    Flag("Mapper.abs_pose_min_num_inliers", int, "mapper.abs_pose_min_num_inliers",
+         "abs_pose_min_num_inliers", "P3P inliers an image needs to register"),
+    Flag("Mapper.abs_pose_min_inlier_ratio", float, "mapper.abs_pose_min_inlier_ratio",
+         "abs_pose_min_inlier_ratio", "P3P inlier ratio an image needs to register"),
+    _na("Mapper.abs_pose_refine_focal_length", bool, "mapper.abs_pose_refine_focal_length",
+        False, _INTRINSICS),
+    _na("Mapper.abs_pose_refine_extra_params", bool, "mapper.abs_pose_refine_extra_params",
+        False, _INTRINSICS),
+    _na("Mapper.ba_local_min_tri_angle", float, "mapper.ba_local_min_tri_angle", 6.0,
+        "a local adjustment takes the new image's most connected images",
+        aliases=("Mapper.local_ba_min_tri_angle",)),
+    _na("Mapper.ba_global_ignore_redundant_points3D", bool,
+        "mapper.ba_global_ignore_redundant_points3D", False, "every point is adjusted"),
+    _na("Mapper.ba_global_prune_points_min_coverage_gain", float,
+        "mapper.ba_global_prune_points_min_coverage_gain", 0.05, "every point is adjusted"),
+    Flag("Mapper.filter_max_reproj_error", float, "mapper.filter_max_reproj_error",
+         "max_reproj_error_px", "reprojection error (px) within which an observation is "
+         "kept (triangulation and pruning)"),
+    Flag("Mapper.filter_min_tri_angle", float, "mapper.filter_min_tri_angle",
+         "min_tri_angle_deg", "angle (deg) a point needs between its rays (triangulation "
+         "and pruning)"),
+    Flag("Mapper.max_reg_trials", int, "mapper.max_reg_trials", "max_registration_trials",
+         "times a failed image is tried again as the model grows"),
+    _na("Mapper.image_selection_method", str, "mapper.image_selection_method",
+        "MIN_UNCERTAINTY", "the registration order is --order"),
+    # ---- the triangulator (IncrementalPipelineOptions.triangulation)
+    _na("Mapper.tri_max_transitivity", int, "triangulation.max_transitivity", 1, _TRIANGULATOR),
+    _na("Mapper.tri_create_max_angle_error", float, "triangulation.create_max_angle_error",
+        2.0, _TRIANGULATOR),
+    _na("Mapper.tri_continue_max_angle_error", float, "triangulation.continue_max_angle_error",
+        2.0, _TRIANGULATOR),
+    _na("Mapper.tri_merge_max_reproj_error", float, "triangulation.merge_max_reproj_error",
+        4.0, _TRIANGULATOR),
+    _na("Mapper.tri_complete_max_reproj_error", float,
+        "triangulation.complete_max_reproj_error", 4.0, _TRIANGULATOR),
+    _na("Mapper.tri_complete_max_transitivity", int, "triangulation.complete_max_transitivity",
+        5, _TRIANGULATOR),
+    _na("Mapper.tri_re_max_angle_error", float, "triangulation.re_max_angle_error", 5.0,
+        _TRIANGULATOR),
+    _na("Mapper.tri_re_min_ratio", float, "triangulation.re_min_ratio", 0.2, _TRIANGULATOR),
+    _na("Mapper.tri_re_max_trials", int, "triangulation.re_max_trials", 1, _TRIANGULATOR),
+    _na("Mapper.tri_min_angle", float, "triangulation.min_angle", 1.5,
+        "points are created and kept at --Mapper.filter_min_tri_angle"),
+    _na("Mapper.tri_ignore_two_view_tracks", bool, "triangulation.ignore_two_view_tracks",
+        True, "a point needs compatible features in at least three images"),
+)
+
+# Every accepted name (COLMAP 3.8's, 4.x's, ours) -> its option.
+BY_NAME: dict[str, Flag] = {name: flag for flag in FLAGS for name in flag.names}
+
+
+def lookup(name: str) -> Flag:
+    """The option called `name`; a UserError, as COLMAP's, for a name it does not have."""
+    flag = BY_NAME.get(name)
+    if flag is None:
+        raise UserError(f"unrecognised option '{name}'")
+    return flag
+
+
+def mapper_options(values: dict[str, Any]) -> MapperOptions:
+    """MapperOptions from option values by name (parsed, any accepted name); options not
+    given keep our defaults. Each not-applicable option given another value than its
+    default is named once in the log."""
+    fields: dict[str, Any] = {}
+    for name, value in values.items():
+        flag = lookup(name)
+        if flag.field is not None:
+            value = flag.convert(value) if flag.convert else value
+            if value is not None:
+                fields[flag.field] = value
+        elif value != flag.default:
+            logger.warning(f"colmap-ext: --{flag.name} {value}: not applicable: {flag.help}")
+    try:
+        return dataclasses.replace(MapperOptions(), **fields)
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
+
+
+def read_project(path: str | Path) -> tuple[dict[str, Any], dict[str, str]]:
+    """A COLMAP project file (`colmap project_generator`, the GUI): its option values by
+    name, parsed, and its paths. Other sections than [Mapper] configure other commands
+    and are skipped; an unknown key or a bad value in ours is a UserError."""
+    try:
+        lines = Path(path).read_text().splitlines()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"cannot read project file {path}: "
+                        f"{getattr(exc, 'strerror', None) or exc}") from None
+    values: dict[str, Any] = {}
+    paths: dict[str, str] = {}
+    section = ""
+    for number, line in enumerate(lines, 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        where = f"{path}, line {number}"
+        if line.startswith("[") and line.endswith("]"):
+            section = line[1:-1].strip()
+            continue
+        if section not in ("", "Mapper"):
+            continue
+        key, sep, text = (part.strip() for part in line.partition("="))
+        if not sep:
+            raise UserError(f"{where}: expected key=value, got '{line}'")
+        if section == "" and key in PATH_KEYS:
+            if text:
+                paths[key] = text
+            continue
+        name = f"{section}.{key}" if section else key
+        flag = BY_NAME.get(name)
+        if flag is None or name not in flag.names[:1] + tuple(
+                a for a in flag.aliases if "." in a or not section):
+            raise UserError(f"{where}: unrecognised option '{name}'")
+        try:
+            values[name] = flag.parse(text)
+        except ValueError:
+            raise UserError(f"{where}: invalid value '{text}' for option '{name}'") from None
+    return values, paths
+
+
+def pycolmap_values(options: Any) -> dict[str, Any]:
+    """The option values of a `pycolmap.IncrementalPipelineOptions`, by name."""
+    values = {}
+    for flag in FLAGS:
+        if flag.pycolmap is None:
+            continue
+        value = options
+        for attribute in flag.pycolmap.split("."):
+            value = getattr(value, attribute)
+        if isinstance(value, Path):  # pycolmap's unset path is Path(".")
+            value = "" if value == Path(".") else str(value)
+        values[flag.name] = getattr(value, "name", value)  # enums by name, as COLMAP's CLI
+    return values
+
+
+def help_lines(flags: Iterable[Flag] = FLAGS) -> list[tuple[tuple[str, ...], str]]:
+    """Per option, its flag names and its help with the default, for `-h`."""
+    lines = []
+    for flag in flags:
+        default = flag.effective_default
+        shown = int(default) if isinstance(default, bool) else default
+        text = flag.help if flag.field else f"not applicable: {flag.help}"
+        lines.append((tuple(f"--{name}" for name in flag.names), f"{text} (default: {shown})"))
+    return lines
