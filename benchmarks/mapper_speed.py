@@ -293,7 +293,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work_dir", default=None,
                         help="keep databases and models here; databases found there are reused")
     parser.add_argument("--markdown", default=None,
-                        help="also write the table as the speed section of this file")
+                        help="also write the table as a section of this file (e.g. BENCHMARKS.md)")
+    parser.add_argument("--section", default="speed",
+                        help="that section's name, so that runs of different sets keep theirs")
     # The child's side.
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--database", help=argparse.SUPPRESS)
@@ -338,7 +340,7 @@ def main(argv: list[str] | None = None) -> int:
     print()
     print(body)
     if args.markdown:
-        update_section(Path(args.markdown), "speed", body)
+        update_section(Path(args.markdown), args.section, body)
         print(f"\nwritten to {args.markdown}")
     return 0
 

@@ -1,0 +1,95 @@
+"""The mapper's inner kernels against brute force: the descriptor searches (blocked,
+threaded, kept per pair) and the linear-time triangulation-angle filter."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_ext.mapper import descriptors
+from colmap_ext.mapper.descriptors import NearestDescriptors, nearest_descriptors, unit_descriptors
+from colmap_ext.mapper.pruning import has_triangulation_angle
+
+
+def random_sift(rng: np.random.Generator, n: int) -> np.ndarray:
+    return rng.integers(0, 120, (n, 128)).astype(np.uint8)
+
+
+def brute_force_nearest(queries: np.ndarray, database: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    cosines = unit_descriptors(queries).astype(np.float64) @ unit_descriptors(database).T.astype(np.float64)
+    index = np.argsort(-cosines, axis=1, kind="stable")[:, :k]
+    return index, np.arccos(np.clip(np.take_along_axis(cosines, index, axis=1), -1, 1))
+
+
+@pytest.fixture
+def small_blocks(monkeypatch):
+    """Blocks of 7 x 50 cosines, so that every search spans many blocks."""
+    monkeypatch.setattr(descriptors, "QUERY_BLOCK_ENTRIES", 350)
+
+
+def test_blocked_search_is_the_exact_k_nearest(small_blocks) -> None:
+    rng = np.random.default_rng(0)
+    queries, database = random_sift(rng, 101), random_sift(rng, 50)
+    index, angles = nearest_descriptors(queries, database, 3)
+    true_index, true_angles = brute_force_nearest(queries, database, 3)
+    assert (index == true_index).all()
+    np.testing.assert_allclose(angles, true_angles, atol=1e-5)
+
+
+@pytest.mark.parametrize("num_threads", [1, 2])
+def test_pair_store_gives_the_exact_nearest_over_all_and_over_subsets(small_blocks, num_threads) -> None:
+    rng = np.random.default_rng(1)
+    features = {i: random_sift(rng, n) for i, n in ((1, 60), (2, 50), (3, 40))}
+    store = NearestDescriptors(features, k=3, max_bytes=2**30, num_threads=num_threads)
+    subsets = [(2, np.array([4, 9, 17, 30, 41])), (3, np.arange(0, 40, 3))]
+    found = store.search_subsets(1, subsets, k=2)
+    for (other_id, subset), (index, angles) in zip(subsets, found):
+        true_index, true_angles = brute_force_nearest(features[1], features[other_id][subset], 2)
+        assert (index == true_index).all()
+        np.testing.assert_allclose(angles, true_angles, atol=1e-5)
+        # The search over all of the other image's keypoints was kept on the way.
+        index, angles = store(1, other_id)
+        true_index, true_angles = brute_force_nearest(features[1], features[other_id], 3)
+        assert (index == true_index).all()
+        np.testing.assert_allclose(angles, true_angles, atol=1e-5)
+
+
+def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
+    rng = np.random.default_rng(2)
+    features = {i: random_sift(rng, 100) for i in range(4)}
+    one_pair = 100 * 3 * (4 + 4)  # int32 indices and float32 angles
+    store = NearestDescriptors(features, k=3, max_bytes=2 * one_pair, num_threads=2)
+    store.prefetch(0, [1, 2, 3])
+    assert list(store._pairs) == [(0, 2), (0, 3)]
+    assert store._bytes == 2 * one_pair
+    store(0, 1)  # searched again, then kept as the newest
+    assert list(store._pairs) == [(0, 3), (0, 1)]
+
+
+def brute_force_widest_angle_deg(model, point_id: int) -> float:
+    rays = np.array([model.xyz[point_id] - model.centre(i) for i in model.tracks[point_id]])
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    return float(np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1, 1))))
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_triangulation_angle_filter_agrees_with_every_pair(seed: int) -> None:
+    """Random tracks of 1 to 40 views, cameras from 1 cm to 1 m apart: the linear-time
+    test decides as the comparison of every pair of rays does, at several thresholds."""
+    rng = np.random.default_rng(seed)
+    num_images = 40
+    poses = {i: pycolmap.Rigid3d(pycolmap.Rotation3d(), rng.normal(size=3) * rng.uniform(0.01, 1))
+             for i in range(num_images)}
+    xyz = rng.normal(size=(301, 3)) * 5 + [0, 0, 10]
+    tracks = {p: {int(i): 0 for i in rng.choice(num_images, rng.integers(1, num_images + 1),
+                                                  replace=False)} for p in range(1, 301)}
+    model = SimpleNamespace(poses=poses, xyz=xyz, tracks=tracks,
+                            centre=lambda i: poses[i].inverse().translation)
+    widest = np.array([brute_force_widest_angle_deg(model, p) for p in tracks])
+    assert 0 < (widest >= 1.5).sum() < len(widest)  # both answers occur
+    for threshold in (0.5, 1.5, 5.0, 20.0):
+        decided = has_triangulation_angle(model, list(tracks), threshold)
+        assert (decided == (widest >= threshold)).all(), threshold
