@@ -9,7 +9,7 @@ its true poses as a COLMAP model):
 2. `colmap-ext compare` on it (ours, COLMAP incremental, COLMAP global; intrinsics fixed);
 3. optionally our end-to-end `reconstruct` from the images (our features and matching).
 Writes the accuracy section of BENCHMARKS.md at the repository root (other sections,
-e.g. the scaling benchmark's, are kept) and prints it.
+e.g. the speed benchmark's, are kept) and prints it.
 
     COLMAP_EXT_DATA=/path/to/data python benchmarks/accuracy.py [--seed 0] [--work_dir DIR]
         [--mappers ours,colmap_incremental,colmap_global] [--no_reconstruct] [--no_demo]
@@ -47,7 +47,7 @@ IMAGE_SUFFIXES = {".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".ppm", ".pg
 
 
 # ---------------------------------------------------------------------------------------
-# Machine, versions, and BENCHMARKS.md sections (shared with scaling.py)
+# Machine, versions, and BENCHMARKS.md sections (shared with mapper_speed.py)
 
 
 def cpu_model() -> str:
