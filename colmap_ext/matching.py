@@ -97,12 +97,17 @@ def match_features(database_path: str | os.PathLike, *, matcher: str = "auto",
             pycolmap.match_exhaustive(database_path, matching_options=options,
                                       device=pycolmap.Device.cpu)
         else:
+            # pycolmap's quadratic overlap replaces the linear pairs rather than adding
+            # to them: linear pairs from pycolmap, the quadratic ones from us.
             pycolmap.match_sequential(
                 database_path, matching_options=options,
-                pairing_options=pycolmap.SequentialPairingOptions(overlap=overlap),
+                pairing_options=pycolmap.SequentialPairingOptions(overlap=overlap,
+                                                                  quadratic_overlap=False),
                 device=pycolmap.Device.cpu)
+            more = quadratic_pairs(names, overlap)
             if loop_closure:
-                match_pairs(database_path, loop_closure_pairs(names, overlap), options)
+                more += loop_closure_pairs(names, overlap)
+            match_pairs(database_path, more, options)
     matched = time.perf_counter()
     pairs = verify_matches(database_path, max_error_px=max_error_px, seed=seed,
                            progress=progress)
@@ -146,6 +151,13 @@ def matching_options(max_ratio: float) -> pycolmap.FeatureMatchingOptions:
     options.sift.max_ratio = max_ratio
     options.sift.cross_check = True
     return options
+
+
+def quadratic_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
+    """COLMAP's quadratic overlap beyond the linear one: each image with the images
+    2^k after it (k < overlap) that lie more than `overlap` ahead."""
+    return [(names[i], names[i + 2**k]) for i in range(len(names)) for k in range(overlap)
+            if overlap < 2**k and i + 2**k < len(names)]
 
 
 def loop_closure_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:

@@ -172,6 +172,72 @@ def test_loop_closure_pairs() -> None:
     assert loop_closure_pairs(names[:2], 5) == []
 
 
+def random_feature_database(path: Path, num_images: int) -> list[str]:
+    """A database of images with 20 random keypoints and descriptors each, written in
+    shuffled name order so that image ids do not follow the names; returns the names,
+    sorted."""
+    names = [f"frame{k:04d}.png" for k in range(num_images)]
+    rng = np.random.default_rng(0)
+    with pycolmap.Database.open(path) as db:
+        camera = pycolmap.Camera(model="PINHOLE", width=WIDTH, height=HEIGHT,
+                                 params=[FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2])
+        camera.camera_id = db.write_camera(camera)
+        for name in rng.permutation(names):
+            image_id = db.write_image(pycolmap.Image(name=str(name), camera_id=camera.camera_id))
+            db.write_keypoints(image_id, rng.uniform(0, HEIGHT, (20, 2)).astype(np.float32))
+            db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
+                pycolmap.FeatureExtractorType.SIFT, rng.integers(0, 256, (20, 128), np.uint8)))
+    return names
+
+
+def matched_pairs(database_path: Path, names: list[str]) -> set[tuple[str, str]]:
+    """The pairs of names (in name order) that matching tried, with or without matches."""
+    db = pycolmap.Database.open(database_path)
+    try:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        return {(a, b) for a, b in itertools.combinations(names, 2)
+                if db.exists_matches(ids[a], ids[b])}
+    finally:
+        db.close()
+
+
+@pytest.fixture(scope="module")
+def long_sequence(tmp_path_factory):
+    """101 images matched by the "auto" matcher with overlap 3: (names, summary, tried pairs)."""
+    database_path = tmp_path_factory.mktemp("long_sequence") / "database.db"
+    names = random_feature_database(database_path, 101)
+    summary = match_features(database_path, overlap=3, progress=False)
+    return names, summary, matched_pairs(database_path, names)
+
+
+def test_auto_matcher_is_exhaustive_up_to_100_images(tmp_path: Path) -> None:
+    names = random_feature_database(tmp_path / "database.db", 100)
+    assert match_features(tmp_path / "database.db", progress=False).matcher == "exhaustive"
+    assert len(matched_pairs(tmp_path / "database.db", names)) == 100 * 99 // 2
+
+
+def test_sequential_matching_above_100_images(long_sequence) -> None:
+    """Above 100 images "auto" matches sequentially in name order (not image-id order):
+    each image with the next 3 and with the ones 1, 2 and 4 after it (COLMAP's quadratic
+    overlap: 2^k for k < overlap), and the last images with the first (loop closure),
+    nothing else."""
+    names, summary, tried = long_sequence
+    assert summary.matcher == "sequential"
+    quadratic = {(names[i], names[i + step]) for i in range(len(names)) for step in (1, 2, 3, 4)
+                 if i + step < len(names)}
+    loop = {tuple(sorted(pair)) for pair in loop_closure_pairs(names, 3)}
+    assert loop == {(names[0], names[-3]), (names[0], names[-2]), (names[0], names[-1]),
+                    (names[1], names[-2]), (names[1], names[-1]), (names[2], names[-1])}
+    assert tried == quadratic | loop
+
+
+def test_sequential_matching_pairs_each_image_with_the_next_overlap(long_sequence) -> None:
+    names, _, tried = long_sequence
+    linear = {(names[i], names[i + step]) for i in range(len(names)) for step in (1, 2, 3)
+              if i + step < len(names)}
+    assert linear <= tried
+
+
 def test_bad_options_and_databases(scene_database, tmp_path: Path) -> None:
     source, _ = scene_database
     with pytest.raises(UserError, match="unknown matcher 'vocab'"):

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import inspect
 import json
 from pathlib import Path
@@ -14,10 +15,11 @@ import pytest
 
 from colmap_ext.errors import UserError
 from colmap_ext.evaluate import evaluate
-from colmap_ext.ground_truth import read_ground_truth
+from colmap_ext.ground_truth import GroundTruth, read_ground_truth
+from colmap_ext.mapper import MapperOptions, run
 from colmap_ext.reconstruct import add_arguments, main
-from colmap_ext.synthetic.render import render_images
-from colmap_ext.synthetic.scene import ring_scene
+from colmap_ext.synthetic.render import Renderer, render_images
+from colmap_ext.synthetic.scene import cast_rays, ring_scene
 
 # A 320x240 version of the synthetic scenes' distorted OPENCV camera.
 CAMERA = pycolmap.Camera(camera_id=1, model="OPENCV", width=320, height=240,
@@ -74,14 +76,22 @@ def test_an_earlier_database_needs_overwrite(images: Path, tmp_path: Path) -> No
         main(images, workspace, "OPENCV", PARAMS)
 
 
-def test_ring_end_to_end(tmp_path: Path) -> None:
+@pytest.fixture(scope="module")
+def ring_run(tmp_path_factory):
+    """Ten views of the synthetic ring scene through the distorted camera, reconstructed
+    with seed 0: (scene, images folder, workspace, summary)."""
+    folder = tmp_path_factory.mktemp("ring")
+    scene = ring_scene(num_images=10, seed=0, camera=CAMERA)
+    render_images(scene, folder / "images", supersample=1)
+    summary = main(folder / "images", folder / "ws", "OPENCV", PARAMS, seed=0, output_type="txt")
+    return scene, folder / "images", folder / "ws", summary
+
+
+def test_ring_end_to_end(ring_run) -> None:
     """Ten views of the synthetic ring scene through a distorted camera: masks are not
     needed (the room is static), features, matching and the mapper run, and the
     workspace holds the database, the model and the summary."""
-    render_images(ring_scene(num_images=10, seed=0, camera=CAMERA), tmp_path / "images",
-                  supersample=1)
-    workspace = tmp_path / "ws"
-    summary = main(tmp_path / "images", workspace, "OPENCV", PARAMS, seed=0, output_type="txt")
+    scene, images, workspace, summary = ring_run
 
     assert (workspace / "database.db").is_file()
     assert (workspace / "sparse" / "0" / "images.txt").is_file()
@@ -90,11 +100,86 @@ def test_ring_end_to_end(tmp_path: Path) -> None:
     assert summary["inputs"]["seed"] == 0 and summary["features"]["num_images"] == 10
     assert summary["matching"]["matcher"] == "exhaustive"
     assert summary["models"][0]["num_registered"] >= 6
+    # Every image registered, in one model or another (measured: 7 + 3).
+    names = [image.name for model in summary["models"]
+             for image in pycolmap.Reconstruction(model["path"]).images.values()]
+    assert sorted(names) == scene.image_names
     assert set(summary["time_s"]) == {"features", "matching", "verification", "mapper", "total"}
     model = pycolmap.Reconstruction(workspace / "sparse" / "0")
     assert list(model.cameras[1].params) == pytest.approx(list(CAMERA.params))
     with pytest.raises(UserError, match="pass --overwrite"):
-        main(tmp_path / "images", workspace, "OPENCV", PARAMS)
+        main(images, workspace, "OPENCV", PARAMS)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "product bug: the 10-view ring gives models of 7 and 3 images, the first with R_err "
+    "max 44.7 deg and C_err max 2.6 (seed 0; 21.7 deg for seed 2, scene seed 2 6 + 4 "
+    "images at 11-12 deg). Verification keeps pairs 36-216 deg apart with 15-46 inliers "
+    "and relative rotations 18-124 deg wrong (0-6, 1-4, 1-5, 1-7, 4-8, 5-7), and the "
+    "mapper registers on them"))
+def test_ring_end_to_end_matches_the_true_poses(ring_run) -> None:
+    """The ten views make one model of all ten, its poses as accurate as the 16-view
+    ring of the object alone at this resolution gives (R_err max 0.86 deg, C_err max
+    0.039; test_segmented_object_ring_end_to_end)."""
+    scene, _, _, summary = ring_run
+    assert len(summary["models"]) == 1
+    truth = GroundTruth(dict(zip(scene.image_names, scene.cams_from_world)), {})
+    report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
+    assert report["num_registered"] == 10
+    assert report["R_err_max_deg"] < 2.5
+    assert report["C_err_max"] < 0.12
+
+
+def test_mapper_maps_the_ring_database_with_any_seed(ring_run, tmp_path: Path) -> None:
+    """The mapper finishes on the ring's database for seeds 0, 1 and 2."""
+    _, images, workspace, _ = ring_run
+    for seed in (0, 1, 2):
+        assert run(workspace / "database.db", images, tmp_path / str(seed),
+                   MapperOptions(seed=seed), progress=False)
+
+
+@pytest.fixture(scope="module")
+def object_ring(tmp_path_factory):
+    """The ring scene's objects alone (no room: a uniform grey background, like a
+    turntable's), 16 views: the scene and its images folder."""
+    scene = ring_scene(num_images=16, seed=0, camera=CAMERA)
+    # ring_scene's first five quads are the room's floor and walls.
+    scene = dataclasses.replace(scene, quads=scene.quads[5:])
+    folder = tmp_path_factory.mktemp("object_ring")
+    render_images(scene, folder / "images", supersample=1)
+    return scene, folder / "images"
+
+
+@pytest.mark.parametrize("method", ["threshold", "grabcut"])
+def test_segmented_object_ring_end_to_end(object_ring, tmp_path: Path, method: str) -> None:
+    """`reconstruct --segment`: a mask per image that matches the objects' true
+    silhouette, every keypoint inside it, and one accurate model of all 16 views."""
+    scene, images = object_ring
+    workspace = tmp_path / "ws"
+    summary = main(images, workspace, "OPENCV", PARAMS, segment=method, seed=0)
+    assert summary["masks"]["path"] == str(workspace / "masks")
+    assert sorted(summary["masks"]["coverage"]) == scene.image_names
+    rays = Renderer(scene, supersample=1).rays
+    database = pycolmap.Database.open(workspace / "database.db")
+    try:
+        keypoints = {image.name: database.read_keypoints(image.image_id)[:, :2]
+                     for image in database.read_all_images()}
+    finally:
+        database.close()
+    for name, pose in zip(scene.image_names, scene.cams_from_world):
+        mask = cv2.imread(str(workspace / "masks" / f"{name}.png"), cv2.IMREAD_GRAYSCALE) > 0
+        silhouette = cast_rays(scene, pose, rays).quad_index >= 0
+        # Intersection over union: measured at least 0.75 (threshold), 0.77 (grabcut).
+        assert (mask & silhouette).sum() / (mask | silhouette).sum() > 0.5, name
+        columns, rows = keypoints[name].astype(int).T
+        assert mask[rows, columns].all(), name
+    assert [model["num_registered"] for model in summary["models"]] == [16]
+    truth = GroundTruth(dict(zip(scene.image_names, scene.cams_from_world)), {})
+    report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
+    # Measured over both methods and seeds 0-2: R_err max 0.64-0.86 deg, C_err max
+    # 0.026-0.039 (320x240 views of small objects).
+    assert report["R_err_max_deg"] < 2.6
+    assert report["C_err_max"] < 0.12
 
 
 def test_temple_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:

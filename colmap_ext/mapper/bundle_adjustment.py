@@ -70,6 +70,8 @@ def bundle_adjust(model: Model, variable_image_ids: list[int], options: MapperOp
     ba_options.ceres.solver_options.num_threads = options.num_threads \
         if options.num_threads > 0 else 2
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
+    if not summary.is_solution_usable():
+        return 0  # not solved (e.g. COLMAP could not fix the gauge): the model stays as it was
 
     for image_id in variable:
         model.poses[image_id] = reconstruction.images[image_id].cam_from_world()
