@@ -4,14 +4,15 @@ SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
-APT_PACKAGES := libopengv-dev libeigen3-dev cmake g++ ninja-build python3-venv
+APT_PACKAGES := libopengv-dev libeigen3-dev cmake g++ ninja-build python3-venv colmap
 STAMPS := $(VENV)/.stamps
 
 .PHONY: install demo test benchmark clean
 
 install: $(STAMPS)/installed
 
-$(STAMPS)/apt:
+# Checked again when this file changes (a package added); the venv does not depend on it.
+$(STAMPS)/apt: Makefile
 	@missing=$$(for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || echo $$p; done); \
 	if [ -n "$$missing" ]; then \
 	  if [ "$$(id -u)" = 0 ]; then SUDO=; elif command -v sudo >/dev/null; then SUDO=sudo; \
@@ -21,7 +22,7 @@ $(STAMPS)/apt:
 	fi
 	@mkdir -p $(STAMPS) && touch $@
 
-$(STAMPS)/venv: $(STAMPS)/apt requirements-build.txt
+$(STAMPS)/venv: requirements-build.txt | $(STAMPS)/apt
 	@[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -r requirements-build.txt

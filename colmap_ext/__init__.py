@@ -10,3 +10,13 @@ bundle adjustment, writing ordinary COLMAP models.
 import numpy  # noqa: F401
 
 __version__ = "0.1.0"
+
+
+def __getattr__(name: str):
+    """`colmap_ext.incremental_mapping` (api.py), imported on first use: it loads pycolmap,
+    which `import colmap_ext` (and so every command) should not pay for."""
+    if name == "incremental_mapping":
+        from colmap_ext.api import incremental_mapping
+
+        return incremental_mapping
+    raise AttributeError(f"module 'colmap_ext' has no attribute {name!r}")

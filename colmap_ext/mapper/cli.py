@@ -1,31 +1,45 @@
-"""`colmap-ext mapper`: COLMAP's `mapper` flags, our calibrated mapper behind them."""
+"""`colmap-ext mapper`: every flag of `colmap mapper` (flags.FLAGS), and `--project_path`,
+with our calibrated mapper behind them."""
 
 from __future__ import annotations
 
 import argparse
 import json
+from typing import Any
 
 from colmap_ext.errors import UserError
+from colmap_ext.mapper.flags import FLAGS, help_text, lookup, mapper_options, read_project
 from colmap_ext.mapper.options import MapperOptions
 from colmap_ext.mapper.pipeline import run
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--database_path", required=True)
-    parser.add_argument("--image_path", required=True)
-    parser.add_argument("--output_path", required=True)
+    parser.usage = ("colmap-ext mapper --database_path DB --image_path IMAGES --output_path OUT "
+                    "[--project_path FILE.ini] [--Mapper.OPTION VALUE ...]")
+    parser.allow_abbrev = False  # as COLMAP: a misspelt option is an error, not a guess
+    parser.add_argument("--project_path", default=None,
+                        help="COLMAP project file (.ini): its top-level keys and [Mapper] "
+                             "section; flags given here win")
+    parser.add_argument("--database_path", default=None)
+    parser.add_argument("--image_path", default=None)
+    parser.add_argument("--output_path", default=None)
+    parser.add_argument("--input_path", default=None, help="not supported yet: an error")
     parser.add_argument("--image_list_path", default=None,
                         help="text file with one image name per line: map only these")
     parser.add_argument("--output_type", default="BIN", choices=["BIN", "TXT", "bin", "txt"])
-    parser.add_argument("--Mapper.init_image_id1", dest="init_image_id1", type=int, default=-1)
-    parser.add_argument("--Mapper.init_image_id2", dest="init_image_id2", type=int, default=-1)
     parser.add_argument("--order", choices=["visibility", "sequence"], default="visibility",
                         help="registration order: COLMAP's (most visible points) or the "
                              "image sequence's (the paper's)")
-    parser.add_argument("--seed", type=int, default=None, help="RANSAC seed, for repeatable runs")
-    parser.add_argument("--num_threads", type=int, default=-1)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a model already in OUTPUT_PATH/0")
+    group = parser.add_argument_group("COLMAP's mapper options",
+                                      "COLMAP 3.8's and 4.x's names; 0/1 or false/true for "
+                                      "booleans. Not applicable: accepted, and named in the "
+                                      "log when given another value than the default")
+    for flag in FLAGS:
+        group.add_argument(*(f"--{name}" for name in flag.names), dest=flag.name,
+                           type=flag.parse, default=None, metavar="VALUE",
+                           help=help_text(flag))
 
 
 def _read_image_list(path: str | None) -> list[str] | None:
@@ -41,18 +55,36 @@ def _read_image_list(path: str | None) -> list[str] | None:
     return names
 
 
-def main(database_path: str, image_path: str, output_path: str, image_list_path: str | None = None,
-         output_type: str = "BIN", init_image_id1: int = -1, init_image_id2: int = -1,
-         order: str = "visibility", seed: int | None = None, num_threads: int = -1,
-         overwrite: bool = False) -> dict:
-    options = MapperOptions(order=order, init_image_id1=init_image_id1,
-                            init_image_id2=init_image_id2, seed=seed, num_threads=num_threads)
-    reconstructions = run(database_path, image_path, output_path, options, overwrite=overwrite,
-                          output_type=output_type.upper(),
-                          image_names=_read_image_list(image_list_path))
-    with open(f"{output_path}/mapper_summary.json") as f:
+def main(database_path: str | None = None, image_path: str | None = None,
+         output_path: str | None = None, project_path: str | None = None,
+         input_path: str | None = None, image_list_path: str | None = None,
+         output_type: str = "BIN", order: str = "visibility", overwrite: bool = False,
+         **flags: Any) -> dict:
+    """`flags`: COLMAP's options by any accepted name (`seed=0`, `**{"Mapper.min_model_size": 5}`);
+    None stands for not given. Values given here win over the project file's."""
+    values: dict[str, Any] = {}
+    paths: dict[str, str] = {}
+    if project_path is not None:
+        values, paths = read_project(project_path)
+    for name, value in flags.items():
+        if value is not None:
+            values[lookup(name).name] = value
+    given = {"database_path": database_path, "image_path": image_path,
+             "output_path": output_path, "input_path": input_path,
+             "image_list_path": image_list_path}
+    paths.update({key: value for key, value in given.items() if value is not None})
+    missing = [key for key in ("database_path", "image_path", "output_path") if key not in paths]
+    if missing:
+        raise UserError(f"the option '--{missing[0]}' is required but missing")
+    if "input_path" in paths:
+        raise UserError("--input_path: continuing an existing model is not supported yet")
+    options = mapper_options(values, MapperOptions(order=order))
+    reconstructions = run(paths["database_path"], paths["image_path"], paths["output_path"],
+                          options, overwrite=overwrite, output_type=output_type.upper(),
+                          image_names=_read_image_list(paths.get("image_list_path")))
+    with open(f"{paths['output_path']}/mapper_summary.json") as f:
         summary = json.load(f)
-    print(format_summary(summary, output_path))
+    print(format_summary(summary, paths["output_path"]))
     return {"reconstructions": reconstructions, "summary": summary}
 
 

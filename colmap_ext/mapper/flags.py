@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Callable, Iterable
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,12 +26,17 @@ logger = logging.getLogger(__name__)
 PATH_KEYS = ("database_path", "image_path", "input_path", "output_path", "image_list_path")
 
 
-def parse_bool(text: str) -> bool:
+def boolean(text: str) -> bool:
     """COLMAP's booleans: 1/0, true/false (any case)."""
     value = {"1": True, "true": True, "0": False, "false": False}.get(text.strip().lower())
     if value is None:
         raise ValueError(f"expected 0, 1, true or false, got {text!r}")
     return value
+
+
+def shown(value: Any) -> Any:
+    """A value as COLMAP prints it: booleans as 0/1."""
+    return int(value) if isinstance(value, bool) else value
 
 
 def _seed(value: int) -> int | None:
@@ -64,11 +69,10 @@ class Flag:
             return self.default
         return MapperOptions.__dataclass_fields__[self.field].default
 
-    def parse(self, text: str) -> Any:
+    @property
+    def parse(self) -> Callable[[str], Any]:
         """The option's value from its text (command line or project file)."""
-        if self.type is bool:
-            return parse_bool(text)
-        return self.type(text)
+        return boolean if self.type is bool else self.type
 
 
 # Reasons shared by several options.
@@ -256,9 +260,9 @@ def lookup(name: str) -> Flag:
     return flag
 
 
-def mapper_options(values: dict[str, Any]) -> MapperOptions:
-    """MapperOptions from option values by name (parsed, any accepted name); options not
-    given keep our defaults. Each not-applicable option given another value than its
+def mapper_options(values: dict[str, Any], base: MapperOptions | None = None) -> MapperOptions:
+    """`base` (default: MapperOptions()) with the option values by name (parsed, any
+    accepted name) applied. Each not-applicable option given another value than its
     default is named once in the log."""
     fields: dict[str, Any] = {}
     for name, value in values.items():
@@ -268,9 +272,10 @@ def mapper_options(values: dict[str, Any]) -> MapperOptions:
             if value is not None:
                 fields[flag.field] = value
         elif value != flag.default:
-            logger.warning(f"colmap-ext: --{flag.name} {value}: not applicable: {flag.help}")
+            logger.warning("colmap-ext: --%s %s: not applicable: %s", flag.name, shown(value),
+                           flag.help)
     try:
-        return dataclasses.replace(MapperOptions(), **fields)
+        return dataclasses.replace(base or MapperOptions(), **fields)
     except ValueError as exc:
         raise UserError(str(exc)) from None
 
@@ -306,8 +311,7 @@ def read_project(path: str | Path) -> tuple[dict[str, Any], dict[str, str]]:
             continue
         name = f"{section}.{key}" if section else key
         flag = BY_NAME.get(name)
-        if flag is None or name not in flag.names[:1] + tuple(
-                a for a in flag.aliases if "." in a or not section):
+        if flag is None:
             raise UserError(f"{where}: unrecognised option '{name}'")
         try:
             values[name] = flag.parse(text)
@@ -331,12 +335,10 @@ def pycolmap_values(options: Any) -> dict[str, Any]:
     return values
 
 
-def help_lines(flags: Iterable[Flag] = FLAGS) -> list[tuple[tuple[str, ...], str]]:
-    """Per option, its flag names and its help with the default, for `-h`."""
-    lines = []
-    for flag in flags:
-        default = flag.effective_default
-        shown = int(default) if isinstance(default, bool) else default
-        text = flag.help if flag.field else f"not applicable: {flag.help}"
-        lines.append((tuple(f"--{name}" for name in flag.names), f"{text} (default: {shown})"))
-    return lines
+def help_text(flag: Flag) -> str:
+    """The option's `-h` line: what it does here or why it does not apply, and its default."""
+    default = flag.effective_default
+    if default is None:  # the seed: unseeded, COLMAP 4.x's -1
+        default = -1
+    text = flag.help if flag.field else f"not applicable: {flag.help}"
+    return f"{text} (default: {shown(default)})"

@@ -72,6 +72,10 @@ class MapperOptions:
     # A model smaller than this is not kept; the remaining images start a new model.
     min_model_size: int = 3
     max_num_models: int = 50
+    # False: only the first model is reconstructed (COLMAP's --Mapper.multiple_models 0).
+    multiple_models: bool = True
+    # Read the points' colours from the images when writing the models.
+    extract_colors: bool = True
     # Models are joined when two images of one, posed among the other's points, imply
     # the same similarity: rotations and directions between centres within this angle.
     # P3P from few points through a narrow field of view errs by a few degrees (dino

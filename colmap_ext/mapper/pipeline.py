@@ -205,9 +205,10 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     models: list[Model] = []
     remaining = image_ids
     excluded_pairs: set[Pair] = set()
+    max_num_models = options.max_num_models if options.multiple_models else 1
     bar = tqdm(total=len(image_ids), desc="registered", unit="image", disable=not progress)
     try:
-        while len(remaining) >= 2 and len(models) < options.max_num_models:
+        while len(remaining) >= 2 and len(models) < max_num_models:
             mapper = IncrementalMapper(model, matches, options, timer, bar)
             if not mapper.run(excluded_pairs):
                 break
@@ -300,8 +301,9 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
         raise UserError("no model could be reconstructed: no image pair gave a relative pose "
                         "with enough well-triangulated points")
     with timer("export"):
-        for reconstruction in reconstructions:
-            reconstruction.extract_colors_for_all_images(str(image_path))
+        if options.extract_colors:
+            for reconstruction in reconstructions:
+                reconstruction.extract_colors_for_all_images(str(image_path))
         write_models(reconstructions, output_path, output_type)
     summary = summarize(reconstructions, timer, time.perf_counter() - start)
     write_json(summary, output_path / "mapper_summary.json")
