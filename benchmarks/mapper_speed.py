@@ -26,7 +26,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import json
 import math
 import os
 import shutil
@@ -323,26 +322,29 @@ def main(argv: list[str] | None = None) -> int:
             results = measure_set(prepared, mappers, args.runs, args.seed, work)
             summarize(results)
             all_results[name] = (prepared, results)
-            (work / "speed.json").write_text(json.dumps(
-                {n: r for n, (_, r) in all_results.items()}, indent=1, default=str))
-    text = table(all_results)
-    growth = growth_exponents(all_results)
-    elapsed = time.perf_counter() - start
-    body = "\n".join([
-        "## Speed and memory: ours against COLMAP's mappers", "",
-        f"`python benchmarks/mapper_speed.py --sets {','.join(names)} --runs {args.runs}` on "
-        f"{datetime.date.today().isoformat()} ({elapsed / 60:.1f} min in all), seed {args.seed}.",
-        f"- machine: {machine_line()}", f"- versions: {versions_line()}",
-        "- each mapper a whole process on a fresh copy of the same database, the order turning "
-        "each round; medians over the rounds; ratios to COLMAP incremental's medians. "
-        "R_err / C_err: the last round's largest model against the ground truth.",
-        *[f"- {line}" for line in growth], "", text])
+            body = section(all_results, args, time.perf_counter() - start,
+                           machine_line(), versions_line())
+            if args.markdown:  # after every set: a long run keeps what it measured
+                update_section(Path(args.markdown), args.section, body)
     print()
     print(body)
     if args.markdown:
-        update_section(Path(args.markdown), args.section, body)
         print(f"\nwritten to {args.markdown}")
     return 0
+
+
+def section(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]], args: argparse.Namespace,
+            elapsed_s: float, machine: str, versions: str) -> str:
+    names = ",".join(all_results)
+    return "\n".join([
+        "## Speed and memory: ours against COLMAP's mappers", "",
+        f"`python benchmarks/mapper_speed.py --sets {names} --runs {args.runs}` on "
+        f"{datetime.date.today().isoformat()} ({elapsed_s / 60:.1f} min in all), seed {args.seed}.",
+        f"- machine: {machine}", f"- versions: {versions}",
+        "- each mapper a whole process on a fresh copy of the same database, the order turning "
+        "each round; medians over the rounds; ratios to COLMAP incremental's medians. "
+        "R_err / C_err: the last round's largest model against the ground truth.",
+        *[f"- {line}" for line in growth_exponents(all_results)], "", table(all_results)])
 
 
 if __name__ == "__main__":
