@@ -4,7 +4,7 @@ SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
-APT_PACKAGES := libopengv-dev libeigen3-dev cmake g++ ninja-build python3-venv colmap
+APT_PACKAGES := libopengv-dev libeigen3-dev cmake g++ ninja-build python3-venv colmap time
 STAMPS := $(VENV)/.stamps
 
 .PHONY: install demo test benchmark clean

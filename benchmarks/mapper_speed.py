@@ -15,7 +15,7 @@ round to round, on a fresh copy of the database. Ours runs as a user runs it
 (`colmap-ext mapper`); COLMAP's through `pycolmap.incremental_mapping` /
 `global_mapping` with the intrinsics fixed (colmap_ext.colmap_mappers), in a child
 that imports pycolmap alone. Wall time is the child's, from start to exit; peak memory
-its maximum resident set (os.wait4). The table gives medians and ratios to COLMAP
+its maximum resident set (GNU time). The table gives medians and ratios to COLMAP
 incremental in the same run, and the last round's model against the ground truth.
 
     python benchmarks/mapper_speed.py [--sets temple,dino,...] [--runs 3] [--seed 0]
@@ -81,14 +81,17 @@ def mapper_command(mapper: str, database: Path, images: Path, output: Path, seed
 
 
 def timed_run(command: list[str], log: Path) -> dict:
-    """Wall seconds, peak resident MiB and exit code of one child process."""
+    """Wall seconds, peak resident MiB and exit code of one child process. The peak comes
+    from GNU time (Debian's `time`): a child forked from this process would count this
+    process's own memory as its peak."""
+    peak = log.with_suffix(".peak")
     with log.open("w") as out:
         start = time.perf_counter()
-        process = subprocess.Popen(command, stdout=out, stderr=subprocess.STDOUT)
-        _, status, usage = os.wait4(process.pid, 0)
+        process = subprocess.run(["/usr/bin/time", "-f", "%M", "-o", str(peak), *command],
+                                 stdout=out, stderr=subprocess.STDOUT)
         seconds = time.perf_counter() - start
-    return {"time_s": seconds, "peak_mib": usage.ru_maxrss / 1024,
-            "exit_code": os.waitstatus_to_exitcode(status)}
+    return {"time_s": seconds, "peak_mib": int(peak.read_text().split()[-1]) / 1024,
+            "exit_code": process.returncode}
 
 
 # ---------------------------------------------------------------------------------------
