@@ -140,13 +140,16 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
     contents = DatabaseContents(cameras, images)
     pair_ids, geometries = db.read_two_view_geometries()
     for pair_id, geometry in zip(pair_ids, geometries):
-        matches = np.asarray(geometry.inlier_matches, dtype=np.int64).reshape(-1, 2)
+        matches = np.asarray(geometry.inlier_matches, dtype=np.int32).reshape(-1, 2)
         if len(matches) and geometry.config not in _FAILED_CONFIGS:
             contents.verified_matches[_ordered(pair_id, matches)[0]] = _ordered(pair_id, matches)[1]
+    # Keypoint indices as int32, each pair's read array released once converted: on
+    # long turntables (every pair matched) the matches are most of the memory.
     pair_ids, matches_list = db.read_all_matches()
-    for pair_id, matches in zip(pair_ids, matches_list):
+    for k, pair_id in enumerate(pair_ids):
+        matches, matches_list[k] = matches_list[k], None
         if len(matches):
-            key, ordered = _ordered(pair_id, np.asarray(matches, dtype=np.int64))
+            key, ordered = _ordered(pair_id, np.asarray(matches, dtype=np.int32))
             contents.raw_matches[key] = ordered
     if not contents.verified_matches and not contents.raw_matches:
         raise UserError(f"the database has no matches: {path} (run feature matching first)")
