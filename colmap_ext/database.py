@@ -138,13 +138,15 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
         raise UserError(f"the database has no keypoints: {path} (run feature extraction first)")
 
     contents = DatabaseContents(cameras, images)
+    # Keypoint indices as int32, each pair's read arrays released once converted: on
+    # long turntables (every pair matched) the matches are most of the memory.
     pair_ids, geometries = db.read_two_view_geometries()
-    for pair_id, geometry in zip(pair_ids, geometries):
+    for k, pair_id in enumerate(pair_ids):
+        geometry, geometries[k] = geometries[k], None
         matches = np.asarray(geometry.inlier_matches, dtype=np.int32).reshape(-1, 2)
         if len(matches) and geometry.config not in _FAILED_CONFIGS:
-            contents.verified_matches[_ordered(pair_id, matches)[0]] = _ordered(pair_id, matches)[1]
-    # Keypoint indices as int32, each pair's read array released once converted: on
-    # long turntables (every pair matched) the matches are most of the memory.
+            key, ordered = _ordered(pair_id, matches)
+            contents.verified_matches[key] = ordered
     pair_ids, matches_list = db.read_all_matches()
     for k, pair_id in enumerate(pair_ids):
         matches, matches_list[k] = matches_list[k], None
