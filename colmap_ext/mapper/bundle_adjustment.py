@@ -67,8 +67,7 @@ def bundle_adjust(model: Model, variable_image_ids: list[int], options: MapperOp
     ba_options.ceres.loss_function_scale = options.ba_loss_scale_px
     ba_options.ceres.solver_options.max_num_iterations = max_iterations
     ba_options.ceres.solver_options.function_tolerance = options.ba_function_tolerance
-    ba_options.ceres.solver_options.num_threads = options.num_threads \
-        if options.num_threads > 0 else 2
+    ba_options.ceres.solver_options.num_threads = options.threads()
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
     if not summary.is_solution_usable():
         return 0  # not solved (e.g. COLMAP could not fix the gauge): the model stays as it was

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
 # Robust losses of bundle adjustment (pycolmap.LossFunctionType, lower case).
@@ -85,6 +86,13 @@ class MapperOptions:
     merge_refinement_rounds: int = 3
     seed: int | None = None
     num_threads: int = -1
+
+    def threads(self) -> int:
+        """The threads to use: num_threads, or every core this process may run on (-1)."""
+        if self.num_threads > 0:
+            return self.num_threads
+        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
+            else os.cpu_count() or 1
 
     def __post_init__(self) -> None:
         if self.order not in ("visibility", "sequence"):

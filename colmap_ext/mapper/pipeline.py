@@ -5,7 +5,6 @@ joined again where they can be (merging.py)."""
 from __future__ import annotations
 
 import itertools
-import os
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -197,7 +196,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     image_ids = _select_images(db, image_names)
     nearest = NearestDescriptors({i: db.images[i].descriptors for i in image_ids},
                                  options.guided_num_neighbors, NEAREST_DESCRIPTORS_BYTES,
-                                 num_threads(options))
+                                 options.threads())
     with timer("two-view geometry"):
         model = Model(db, nearest, image_ids)
         matches = verified_matches(model, options, progress)
@@ -253,13 +252,6 @@ def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: 
                           options, timer, None).refine_joined()
         models = sorted([m for m in models if m is not target and m is not source] + [joined],
                         key=lambda model: -model.num_registered)
-
-
-def num_threads(options: MapperOptions) -> int:
-    """The threads to use: options.num_threads, or every core this process may run on."""
-    if options.num_threads > 0:
-        return options.num_threads
-    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _select_images(db, image_names: list[str] | None) -> list[int]:
