@@ -39,7 +39,7 @@ def small_blocks(monkeypatch):
 def test_blocked_search_is_the_exact_k_nearest(small_blocks) -> None:
     rng = np.random.default_rng(0)
     queries, database = random_sift(rng, 101), random_sift(rng, 50)
-    index, angles = nearest_descriptors(queries, database, 3)
+    index, angles, _ = nearest_descriptors(queries, database, 3)
     true_index, true_angles = brute_force_nearest(queries, database, 3)
     assert (index == true_index).all()
     np.testing.assert_allclose(angles, true_angles, atol=1e-5)

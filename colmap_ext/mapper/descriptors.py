@@ -52,17 +52,23 @@ def _angles(cosines: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(cosines, -1.0, 1.0))
 
 
-def nearest_descriptors(queries: np.ndarray, database: np.ndarray,
-                        k: int) -> tuple[np.ndarray, np.ndarray]:
+def nearest_descriptors(queries: np.ndarray, database: np.ndarray, k: int,
+                        subset: np.ndarray | None = None, k_subset: int = 0,
+                        ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """Indices (q, k) of the k nearest descriptors (uint8 SIFT), nearest first, and
-    their angles (radians)."""
-    k = min(k, len(database))
-    index = np.empty((len(queries), k), np.int64)
+    their angles (radians); from the same cosines, the k_subset nearest among the
+    database rows `subset` (indices into it, angles)."""
+    k, k_subset = min(k, len(database)), min(k_subset, 0 if subset is None else len(subset))
+    index = np.empty((len(queries), k), np.int32)
     best = np.empty((len(queries), k), np.float32)
+    sub_index = np.empty((len(queries), k_subset), np.int64)
+    sub_best = np.empty((len(queries), k_subset), np.float32)
     for start, similarity in _similarity_blocks(queries, database):
-        index[start:start + len(similarity)], best[start:start + len(similarity)] = \
-            _take_nearest(similarity, k)
-    return index, _angles(best)
+        rows = slice(start, start + len(similarity))
+        if k_subset:
+            sub_index[rows], sub_best[rows] = _take_nearest(similarity[:, subset], k_subset)
+        index[rows], best[rows] = _take_nearest(similarity, k)
+    return index, _angles(best), (sub_index, _angles(sub_best))
 
 
 class NearestDescriptors:
@@ -114,18 +120,8 @@ class NearestDescriptors:
 
     def _search(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
         """(index, angles) over all of `other_id`, and the k nearest within `subset`."""
-        queries, database = self.descriptors[image_id], self.descriptors[other_id]
-        k_all, k_subset = min(self.k, len(database)), min(k, len(subset))
-        index = np.empty((len(queries), k_all), np.int32)
-        best = np.empty((len(queries), k_all), np.float32)
-        sub_index = np.empty((len(queries), k_subset), np.int64)
-        sub_best = np.empty((len(queries), k_subset), np.float32)
-        for start, similarity in _similarity_blocks(queries, database):
-            rows = slice(start, start + len(similarity))
-            if k_subset:
-                sub_index[rows], sub_best[rows] = _take_nearest(similarity[:, subset], k_subset)
-            index[rows], best[rows] = _take_nearest(similarity, k_all)
-        return index, _angles(best), (sub_index, _angles(sub_best))
+        return nearest_descriptors(self.descriptors[image_id], self.descriptors[other_id],
+                                   self.k, subset, k)
 
     def _keep(self, pair: tuple[int, int], index: np.ndarray, angles: np.ndarray) -> None:
         self._pairs[pair] = (index, angles)

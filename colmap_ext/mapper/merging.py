@@ -129,8 +129,8 @@ def _descriptor_correspondences(image_model: Model, image_id: int, points_model:
     descriptors = np.concatenate([points_model.descriptors[i][kps]
                                   for i, (kps, _) in zip(neighbours, observed)])
     points = np.concatenate([point_ids for _, point_ids in observed])
-    index, angles = nearest_descriptors(image_model.descriptors[image_id], descriptors,
-                                        NUM_NEAREST_OBSERVATIONS)
+    index, angles, _ = nearest_descriptors(image_model.descriptors[image_id], descriptors,
+                                           NUM_NEAREST_OBSERVATIONS)
     nearest = points[index]
     other = nearest != nearest[:, :1]
     rows = np.arange(len(index))
