@@ -32,6 +32,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "image sequence's (the paper's)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a model already in OUTPUT_PATH/0")
+    add_option_flags(parser)
+
+
+def add_option_flags(parser: argparse.ArgumentParser) -> None:
+    """COLMAP's mapper options (flags.FLAGS) as flags whose destinations are the options'
+    names, None when not given: what `options_from_flags` reads."""
     group = parser.add_argument_group("COLMAP's mapper options",
                                       "COLMAP 3.8's and 4.x's names; 0/1 or false/true for "
                                       "booleans. Not applicable: accepted, and named in the "
@@ -40,6 +46,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         group.add_argument(*(f"--{name}" for name in flag.names), dest=flag.name,
                            type=flag.parse, default=None, metavar="VALUE",
                            help=help_text(flag))
+
+
+def options_from_flags(flags: dict[str, Any], project_values: dict[str, Any] | None = None,
+                       base: MapperOptions | None = None) -> MapperOptions:
+    """MapperOptions from the options given by name (None: not given), over the project
+    file's values, over `base`."""
+    values = dict(project_values or {})
+    for name, value in flags.items():
+        if value is not None:
+            values[lookup(name).name] = value
+    return mapper_options(values, base)
 
 
 def _read_image_list(path: str | None) -> list[str] | None:
@@ -66,9 +83,6 @@ def main(database_path: str | None = None, image_path: str | None = None,
     paths: dict[str, str] = {}
     if project_path is not None:
         values, paths = read_project(project_path)
-    for name, value in flags.items():
-        if value is not None:
-            values[lookup(name).name] = value
     given = {"database_path": database_path, "image_path": image_path,
              "output_path": output_path, "input_path": input_path,
              "image_list_path": image_list_path}
@@ -78,7 +92,7 @@ def main(database_path: str | None = None, image_path: str | None = None,
         raise UserError(f"the option '--{missing[0]}' is required but missing")
     if "input_path" in paths:
         raise UserError("--input_path: continuing an existing model is not supported yet")
-    options = mapper_options(values, MapperOptions(order=order))
+    options = options_from_flags(flags, values, MapperOptions(order=order))
     reconstructions = run(paths["database_path"], paths["image_path"], paths["output_path"],
                           options, overwrite=overwrite, output_type=output_type.upper(),
                           image_names=_read_image_list(paths.get("image_list_path")))
