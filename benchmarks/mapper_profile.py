@@ -27,7 +27,7 @@ from colmap_ext.compare import run_mapper
 from colmap_ext.database import read_database
 from colmap_ext.evaluate import evaluate
 from colmap_ext.ground_truth import read_ground_truth
-from colmap_ext.mapper.options import BA_LOSSES, MapperOptions
+from colmap_ext.mapper.options import BA_LOSSES, BundleAdjustmentOptions, MapperOptions
 from colmap_ext.mapper.pipeline import StageTimer, reconstruct
 
 STAGES = ("registration", "triangulation", "bundle adjustment", "pruning")
@@ -38,8 +38,8 @@ def profile_ours(database: Path, ground_truth: Path, loss: str, seed: int) -> di
     db = read_database(database)
     timer = StageTimer()
     start = time.perf_counter()
-    reconstructions = reconstruct(db, MapperOptions(ba_loss=loss, seed=seed), timer=timer,
-                                  progress=False)
+    options = MapperOptions(bundle_adjustment=BundleAdjustmentOptions(loss=loss), seed=seed)
+    reconstructions = reconstruct(db, options, timer=timer, progress=False)
     total = time.perf_counter() - start
     report = evaluate(reconstructions[0], read_ground_truth(ground_truth)) if reconstructions else {}
     return {"total_s": total, "stages": dict(timer.seconds), "counts": dict(timer.counts),

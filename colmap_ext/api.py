@@ -7,8 +7,7 @@ from pathlib import Path
 
 import pycolmap
 
-from colmap_ext.errors import UserError
-from colmap_ext.mapper.flags import mapper_options, pycolmap_values
+from colmap_ext.mapper.flags import pycolmap_options
 from colmap_ext.mapper.options import MapperOptions
 from colmap_ext.mapper.pipeline import run
 
@@ -19,16 +18,14 @@ def incremental_mapping(database_path: str | Path, image_path: str | Path,
                         input_path: str | Path | None = None,
                         ) -> dict[int, pycolmap.Reconstruction]:
     """Reconstruct into OUTPUT/0, OUTPUT/1, ... and return the models by index, as
-    pycolmap does (models already there are replaced). A pycolmap options object is read
-    through the option table (mapper/flags.py): every value it holds is applied, so a
-    default-constructed one carries COLMAP's thresholds; None gives our defaults. Its
-    `image_names` selects the images; the intrinsics are held constant whatever its
-    `constant_cameras`. The database is read, never written."""
-    if input_path:
-        raise UserError("input_path: continuing an existing model is not supported yet")
+    pycolmap does (models already there are replaced); with `input_path`, continue that
+    model. A pycolmap options object is read through the option table (mapper/flags.py):
+    every value it holds is applied, so a default-constructed one carries COLMAP's
+    thresholds, except its intrinsics refinement (flags.pycolmap_options); None gives our
+    defaults. Its `image_names` selects the images. The database is read, never written."""
     image_names = None
     if isinstance(options, pycolmap.IncrementalPipelineOptions):
         image_names = list(options.image_names) or None
-        options = mapper_options(pycolmap_values(options))
+        options = pycolmap_options(options)
     return run(database_path, image_path, output_path, options or MapperOptions(),
-               overwrite=True, image_names=image_names)
+               overwrite=True, image_names=image_names, input_path=input_path)

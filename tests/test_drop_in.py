@@ -16,7 +16,7 @@ import pycolmap
 import pytest
 
 from colmap_ext.mapper import cli
-from colmap_ext.mapper.flags import FLAGS, BY_NAME, mapper_options, pycolmap_values, read_project
+from colmap_ext.mapper.flags import FLAGS, BY_NAME, get_field, pycolmap_options, read_project
 from colmap_ext.mapper.options import MapperOptions
 
 CLI = [sys.executable, "-m", "colmap_ext", "mapper"]
@@ -40,10 +40,11 @@ def test_table_covers_every_pycolmap_option():
     assert sorted(set(pycolmap_fields()) - set(covered)) == []
     assert len(covered) == len(set(covered))
     assert len(BY_NAME) == sum(len(flag.names) for flag in FLAGS), "a name used twice"
-    fields = MapperOptions.__dataclass_fields__
+    defaults = MapperOptions()
     for flag in FLAGS:
         assert flag.help, flag.name
-        assert flag.field is None or flag.field in fields, flag.name
+        if flag.field is not None:
+            get_field(defaults, flag.field)  # an AttributeError names a field that is not there
 
 
 def test_pycolmap_options_set_our_fields_and_name_what_does_not_apply(caplog):
@@ -53,18 +54,21 @@ def test_pycolmap_options_set_our_fields_and_name_what_does_not_apply(caplog):
     options.random_seed = 7
     options.mapper.abs_pose_max_error = 5.5
     options.ba_global_frames_ratio = 1.3
-    options.triangulation.min_angle = 3.0  # not applicable
+    options.triangulation.min_angle = 3.0
     with caplog.at_level(logging.WARNING):
-        ours = mapper_options(pycolmap_values(options))
+        ours = pycolmap_options(options)
     assert (ours.min_model_size, ours.multiple_models, ours.seed) == (4, False, 7)
-    assert (ours.abs_pose_max_error_px, ours.ba_global_images_ratio) == (5.5, 1.3)
+    assert ours.registration.abs_pose_max_error_px == 5.5
+    assert ours.bundle_adjustment.global_images_ratio == 1.3
+    assert ours.triangulation.min_tri_angle_deg == 3.0
     # pycolmap's -1 iterations: the solver's default, ours
-    assert ours.ba_local_max_iterations == MapperOptions().ba_local_max_iterations
+    assert ours.bundle_adjustment.local_max_iterations == \
+        MapperOptions().bundle_adjustment.local_max_iterations
+    # pycolmap refines intrinsics by default: not applied, and said
+    assert not ours.bundle_adjustment.refines_intrinsics
     named = sorted(re.search(r"--(\S+)", r.getMessage()).group(1) for r in caplog.records)
-    # pycolmap refines intrinsics by default; ours holds them constant and says so
     assert named == ["Mapper.abs_pose_refine_extra_params", "Mapper.abs_pose_refine_focal_length",
-                     "Mapper.ba_refine_extra_params", "Mapper.ba_refine_focal_length",
-                     "Mapper.tri_min_angle"]
+                     "Mapper.ba_refine_extra_params", "Mapper.ba_refine_focal_length"]
 
 
 PROJECT = """\
@@ -105,7 +109,8 @@ def test_project_file_values_and_command_line_wins(tmp_path, monkeypatch):
     options = seen["options"]
     assert seen["database"] == "/data/db.db"
     assert (options.seed, options.min_model_size) == (1, 7)  # given: they win
-    assert (options.init_min_tri_angle_deg, options.ba_global_images_ratio) == (8.0, 1.2)
+    assert options.initialization.min_tri_angle_deg == 8.0
+    assert options.bundle_adjustment.global_images_ratio == 1.2
 
 
 def run_cli(*args: str | Path) -> subprocess.CompletedProcess:

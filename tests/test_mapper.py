@@ -19,6 +19,7 @@ from colmap_ext.database import read_database
 from colmap_ext.evaluate import align_similarity, evaluate, rotation_angles_deg
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper import MapperOptions, pipeline, run
+from colmap_ext.mapper.options import BundleAdjustmentOptions
 from colmap_ext.mapper.cli import main as mapper_cli
 from colmap_ext.mapper.merging import Similarity, find_similarity
 from colmap_ext.mapper.model import Model
@@ -107,8 +108,8 @@ def test_bundle_adjustment_loss_reaches_ceres(synthetic):
     iterations = {}
     for loss in ("cauchy", "soft_l1", "trivial"):
         timer = StageTimer()
-        reconstructions = reconstruct(db, MapperOptions(ba_loss=loss, seed=0), timer=timer,
-                                      progress=False)
+        options = MapperOptions(bundle_adjustment=BundleAdjustmentOptions(loss=loss), seed=0)
+        reconstructions = reconstruct(db, options, timer=timer, progress=False)
         assert len(reconstructions) == 1, loss
         report = evaluate(reconstructions[0], truth)
         assert report["num_registered"] == scene.num_images, loss
@@ -116,8 +117,9 @@ def test_bundle_adjustment_loss_reaches_ceres(synthetic):
         assert report["C_err_max"] < RING_MAX_C_ERR, loss
         iterations[loss] = timer.counts["bundle adjustment iterations"]
     assert iterations["trivial"] < iterations["soft_l1"] < iterations["cauchy"]
-    with pytest.raises(ValueError, match="ba_loss must be"):
-        MapperOptions(ba_loss="huber")
+    with pytest.raises(ValueError, match="BundleAdjustmentOptions.loss must be one of "
+                                         "cauchy, soft_l1, trivial, got 'huber'"):
+        MapperOptions(bundle_adjustment=BundleAdjustmentOptions(loss="huber")).check()
 
 
 def test_cli_writes_text_and_refuses_to_overwrite(synthetic, tmp_path):

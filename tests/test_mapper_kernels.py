@@ -111,7 +111,7 @@ def test_guided_matching_finds_the_true_correspondences(tmp_path) -> None:
     options = MapperOptions()
     first, second = truth.image_ids[0], truth.image_ids[1]
     store = NearestDescriptors({i: db.images[i].descriptors for i in db.images},
-                               options.guided_num_neighbors, 2**26, num_threads=2)
+                               options.guided_matching.num_neighbors, 2**26, num_threads=2)
     model = Model(db, store)
     for view, image_id in enumerate(truth.image_ids[:2]):
         model.register(image_id, scene.cams_from_world[view])

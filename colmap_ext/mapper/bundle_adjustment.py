@@ -1,7 +1,8 @@
-"""Bundle adjustment through pycolmap (Ceres), intrinsics constant.
+"""Bundle adjustment through pycolmap (Ceres): intrinsics constant unless a global
+adjustment is asked to refine them (BundleAdjustmentOptions.refine_*).
 
 The model is copied into a pycolmap.Reconstruction holding just the images and
-points of the problem, adjusted, and the refined poses and points copied back.
+points of the problem, adjusted, and the refined poses, points and cameras copied back.
 """
 
 from __future__ import annotations
@@ -37,36 +38,43 @@ def to_reconstruction(model: Model, image_ids: list[int],
     return reconstruction
 
 
-def bundle_adjust(model: Model, variable_image_ids: list[int], options: MapperOptions,
-                  max_iterations: int) -> int:
-    """Adjust the poses of `variable_image_ids` and every point they observe; the other
-    registered images observing those points hold their poses constant. The first
-    registered image fixes the gauge (identity pose, and the scale with the second).
+def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
+                  max_iterations: int, refine_intrinsics: bool = False) -> int:
+    """Adjust every point `image_ids` observe and the poses of those images, except the
+    model's fixed images; the other registered images observing the points hold their
+    poses constant. Without two constant images, two cameras fix the gauge. With
+    `refine_intrinsics`, the intrinsics the options name are refined too.
     Returns the number of Ceres iterations."""
-    variable = set(variable_image_ids)
-    point_ids = sorted({int(p) for i in variable for p in model.observations(i)[1]})
+    ba = options.bundle_adjustment
+    requested = set(image_ids)
+    point_ids = sorted({int(p) for i in requested for p in model.observations(i)[1]})
     observing = {i for p in point_ids for i in model.tracks[p]}
-    image_ids = sorted(variable | observing)
-    constant = set(image_ids) - variable
-    reconstruction = to_reconstruction(model, image_ids, point_ids)
+    problem_image_ids = sorted(requested | observing)
+    variable = requested - model.fixed_image_ids
+    constant = set(problem_image_ids) - variable
+    reconstruction = to_reconstruction(model, problem_image_ids, point_ids)
+    refine_intrinsics = refine_intrinsics and ba.refines_intrinsics
 
     config = pycolmap.BundleAdjustmentConfig()
-    for image_id in image_ids:
+    for image_id in problem_image_ids:
         config.add_image(image_id)
-    for camera_id in reconstruction.cameras:
-        config.set_constant_cam_intrinsics(camera_id)
+    if not refine_intrinsics:
+        for camera_id in reconstruction.cameras:
+            config.set_constant_cam_intrinsics(camera_id)
     for image_id in constant:
         config.set_constant_rig_from_world_pose(reconstruction.images[image_id].frame_id)
     if len(constant) < 2:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
 
     ba_options = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=False, refine_principal_point=False, refine_extra_params=False,
+        refine_focal_length=refine_intrinsics and ba.refine_focal_length,
+        refine_principal_point=refine_intrinsics and ba.refine_principal_point,
+        refine_extra_params=refine_intrinsics and ba.refine_extra_params,
         print_summary=False)
-    ba_options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, options.ba_loss.upper())
-    ba_options.ceres.loss_function_scale = options.ba_loss_scale_px
+    ba_options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, ba.loss.upper())
+    ba_options.ceres.loss_function_scale = ba.loss_scale_px
     ba_options.ceres.solver_options.max_num_iterations = max_iterations
-    ba_options.ceres.solver_options.function_tolerance = options.ba_function_tolerance
+    ba_options.ceres.solver_options.function_tolerance = ba.function_tolerance
     ba_options.ceres.solver_options.num_threads = options.threads()
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
     if not summary.is_solution_usable():
@@ -76,4 +84,7 @@ def bundle_adjust(model: Model, variable_image_ids: list[int], options: MapperOp
         model.poses[image_id] = reconstruction.images[image_id].cam_from_world()
     for point_id in point_ids:
         model.xyz[point_id] = reconstruction.points3D[point_id].xyz
+    if refine_intrinsics:
+        for camera_id, camera in reconstruction.cameras.items():
+            model.set_camera(camera_id, camera)
     return summary.ceres_summary.num_successful_steps + summary.ceres_summary.num_unsuccessful_steps

@@ -9,7 +9,7 @@ from typing import Any
 
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.flags import FLAGS, help_text, lookup, mapper_options, read_project
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import MapperOptions, RegistrationOptions
 from colmap_ext.mapper.pipeline import run
 
 
@@ -23,7 +23,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--database_path", default=None)
     parser.add_argument("--image_path", default=None)
     parser.add_argument("--output_path", default=None)
-    parser.add_argument("--input_path", default=None, help="not supported yet: an error")
+    parser.add_argument("--input_path", default=None,
+                        help="a model (BIN or TXT) to continue: the database's other images "
+                             "are registered into it; it is read, never written")
     parser.add_argument("--image_list_path", default=None,
                         help="text file with one image name per line: map only these")
     parser.add_argument("--output_type", default="BIN", choices=["BIN", "TXT", "bin", "txt"])
@@ -90,12 +92,12 @@ def main(database_path: str | None = None, image_path: str | None = None,
     missing = [key for key in ("database_path", "image_path", "output_path") if key not in paths]
     if missing:
         raise UserError(f"the option '--{missing[0]}' is required but missing")
-    if "input_path" in paths:
-        raise UserError("--input_path: continuing an existing model is not supported yet")
-    options = options_from_flags(flags, values, MapperOptions(order=order))
+    options = options_from_flags(flags, values,
+                                 MapperOptions(registration=RegistrationOptions(order=order)))
     reconstructions = run(paths["database_path"], paths["image_path"], paths["output_path"],
                           options, overwrite=overwrite, output_type=output_type.upper(),
-                          image_names=_read_image_list(paths.get("image_list_path")))
+                          image_names=_read_image_list(paths.get("image_list_path")),
+                          input_path=paths.get("input_path"))
     with open(f"{paths['output_path']}/mapper_summary.json") as f:
         summary = json.load(f)
     print(format_summary(summary, paths["output_path"]))

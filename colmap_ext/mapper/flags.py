@@ -10,7 +10,7 @@ accepted, and a value other than its default is named once in the log with the r
 
 from __future__ import annotations
 
-import dataclasses
+import copy
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -67,7 +67,7 @@ class Flag:
         """The value used when the option is not given."""
         if self.field is None:
             return self.default
-        return MapperOptions.__dataclass_fields__[self.field].default
+        return get_field(MapperOptions(), self.field)
 
     @property
     def parse(self) -> Callable[[str], Any]:
@@ -75,14 +75,19 @@ class Flag:
         return boolean if self.type is bool else self.type
 
 
+# Options that refine the intrinsics; off unless asked for on the command line or in
+# MapperOptions.
+INTRINSICS_REFINEMENT = ("Mapper.ba_refine_focal_length", "Mapper.ba_refine_principal_point",
+                         "Mapper.ba_refine_extra_params")
 # Reasons shared by several options.
 _INTRINSICS = "the intrinsics are known and held constant, as the method assumes"
+_BOUNDS = ("the intrinsics are known; refined ones (--Mapper.ba_refine_*) are not checked "
+           "against bounds")
 _TRIANGULATOR = ("points come from the method's guided matching (features compatible in at "
                  "least three images), not from COLMAP's triangulator")
 _BA_SCHEDULE = ("global adjustment runs whenever the model grows by --Mapper.ba_global_frames_"
                 "ratio, each adjustment followed by pruning")
 _GPU = "bundle adjustment runs on the CPU (pycolmap's Ceres)"
-_CONTINUE = "continuing an existing model (--input_path) is not supported yet"
 _NO_PRIORS = "position priors are not used"
 
 
@@ -99,7 +104,7 @@ FLAGS: tuple[Flag, ...] = (
     _na("log_level", int, None, 2, "COLMAP's glog verbosity; this mapper logs progress and "
         "a summary"),
     # ---- the pipeline (IncrementalPipelineOptions)
-    Flag("Mapper.min_num_matches", int, "min_num_matches", "two_view_min_num_inliers",
+    Flag("Mapper.min_num_matches", int, "min_num_matches", "two_view.min_num_inliers",
          "verified matches an image pair needs to be used"),
     _na("Mapper.ignore_watermarks", bool, "ignore_watermarks", False,
         "the database's verified matches are used as they are"),
@@ -111,9 +116,9 @@ FLAGS: tuple[Flag, ...] = (
         "models share no images; models that fell apart are joined where two images agree"),
     Flag("Mapper.min_model_size", int, "min_model_size", "min_model_size",
          "fewest registered images a model needs to be kept"),
-    Flag("Mapper.init_image_id1", int, "init_image_id1", "init_image_id1",
+    Flag("Mapper.init_image_id1", int, "init_image_id1", "initialization.image_id1",
          "first image of the initial pair; -1: the mapper chooses"),
-    Flag("Mapper.init_image_id2", int, "init_image_id2", "init_image_id2",
+    Flag("Mapper.init_image_id2", int, "init_image_id2", "initialization.image_id2",
          "second image of the initial pair; -1: the mapper chooses"),
     _na("Mapper.init_num_trials", int, "init_num_trials", 200,
         "every candidate pair is tried once; a pair that fails is not tried again"),
@@ -126,13 +131,18 @@ FLAGS: tuple[Flag, ...] = (
          "read the points' colours from the images"),
     Flag("Mapper.num_threads", int, "num_threads", "num_threads",
          "threads (Ceres, BLAS); -1: all cores", aliases=("num_threads",)),
-    _na("Mapper.min_focal_length_ratio", float, "min_focal_length_ratio", 0.1, _INTRINSICS),
-    _na("Mapper.max_focal_length_ratio", float, "max_focal_length_ratio", 10.0, _INTRINSICS),
-    _na("Mapper.max_extra_param", float, "max_extra_param", 1.0, _INTRINSICS),
-    _na("Mapper.ba_refine_focal_length", bool, "ba_refine_focal_length", False, _INTRINSICS),
-    _na("Mapper.ba_refine_principal_point", bool, "ba_refine_principal_point", False,
-        _INTRINSICS),
-    _na("Mapper.ba_refine_extra_params", bool, "ba_refine_extra_params", False, _INTRINSICS),
+    _na("Mapper.min_focal_length_ratio", float, "min_focal_length_ratio", 0.1, _BOUNDS),
+    _na("Mapper.max_focal_length_ratio", float, "max_focal_length_ratio", 10.0, _BOUNDS),
+    _na("Mapper.max_extra_param", float, "max_extra_param", 1.0, _BOUNDS),
+    Flag("Mapper.ba_refine_focal_length", bool, "ba_refine_focal_length",
+         "bundle_adjustment.refine_focal_length", "refine the focal length in global "
+         "adjustments; 0: known and constant, as the method assumes"),
+    Flag("Mapper.ba_refine_principal_point", bool, "ba_refine_principal_point",
+         "bundle_adjustment.refine_principal_point", "refine the principal point in global "
+         "adjustments; 0: known and constant, as the method assumes"),
+    Flag("Mapper.ba_refine_extra_params", bool, "ba_refine_extra_params",
+         "bundle_adjustment.refine_extra_params", "refine the extra params in global "
+         "adjustments; 0: known and constant, as the method assumes"),
     _na("Mapper.ba_refine_sensor_from_rig", bool, "ba_refine_sensor_from_rig", True,
         "each image is its own rig: there is no sensor-from-rig pose to refine"),
     _na("Mapper.ba_min_num_residuals_for_cpu_multi_threading", int,
@@ -140,25 +150,25 @@ FLAGS: tuple[Flag, ...] = (
         "Ceres uses --Mapper.num_threads threads",
         aliases=("Mapper.ba_min_num_residuals_for_multi_threading",)),
     Flag("Mapper.ba_local_num_images", int, "mapper.ba_local_num_images",
-         "ba_local_num_images", "images in a local bundle adjustment: the new one and its "
+         "bundle_adjustment.local_num_images", "images in a local bundle adjustment: the new one and its "
          "most connected registered images"),
     _na("Mapper.ba_local_function_tolerance", float, "ba_local_function_tolerance", 0.0,
         "local and global adjustment share --Mapper.ba_global_function_tolerance"),
     Flag("Mapper.ba_local_max_num_iterations", int, "ba_local_max_num_iterations",
-         "ba_local_max_iterations", "Ceres iterations of a local adjustment; -1: ours",
+         "bundle_adjustment.local_max_iterations", "Ceres iterations of a local adjustment; -1: ours",
          convert=_iterations),
     Flag("Mapper.ba_global_frames_ratio", float, "ba_global_frames_ratio",
-         "ba_global_images_ratio", "global adjustment whenever the model has grown by this "
+         "bundle_adjustment.global_images_ratio", "global adjustment whenever the model has grown by this "
          "ratio", aliases=("Mapper.ba_global_images_ratio",)),
     _na("Mapper.ba_global_points_ratio", float, "ba_global_points_ratio", 1.1, _BA_SCHEDULE),
     _na("Mapper.ba_global_frames_freq", int, "ba_global_frames_freq", 500, _BA_SCHEDULE,
         aliases=("Mapper.ba_global_images_freq",)),
     _na("Mapper.ba_global_points_freq", int, "ba_global_points_freq", 250000, _BA_SCHEDULE),
     Flag("Mapper.ba_global_function_tolerance", float, "ba_global_function_tolerance",
-         "ba_function_tolerance", "Ceres stops when an iteration lowers the cost by less "
+         "bundle_adjustment.function_tolerance", "Ceres stops when an iteration lowers the cost by less "
          "than this fraction (local and global adjustment); 0: at the iteration limit"),
     Flag("Mapper.ba_global_max_num_iterations", int, "ba_global_max_num_iterations",
-         "ba_global_max_iterations", "Ceres iterations of a global adjustment; -1: ours",
+         "bundle_adjustment.global_max_iterations", "Ceres iterations of a global adjustment; -1: ours",
          convert=_iterations),
     _na("Mapper.ba_global_max_refinements", int, "ba_global_max_refinements", 5, _BA_SCHEDULE),
     _na("Mapper.ba_global_max_refinement_change", float, "ba_global_max_refinement_change",
@@ -177,34 +187,38 @@ FLAGS: tuple[Flag, ...] = (
         False, _NO_PRIORS),
     _na("Mapper.prior_position_loss_scale", float, "prior_position_loss_scale", 7.815,
         _NO_PRIORS),
-    _na("Mapper.snapshot_path", str, "snapshot_path", "", "snapshots are not written yet"),
-    _na("Mapper.snapshot_frames_freq", int, "snapshot_frames_freq", 0,
-        "snapshots are not written yet", aliases=("Mapper.snapshot_images_freq",)),
+    Flag("Mapper.snapshot_path", str, "snapshot_path", "snapshot_path",
+         "folder that gets a snapshot of the model every --Mapper.snapshot_frames_freq "
+         "registered images"),
+    Flag("Mapper.snapshot_frames_freq", int, "snapshot_frames_freq", "snapshot_frames_freq",
+         "registered images between snapshots; 0: none",
+         aliases=("Mapper.snapshot_images_freq",)),
     _na("Mapper.load_all_images", bool, "load_all_images", False,
         "a model holds its registered images"),
-    _na("Mapper.fix_existing_frames", bool, "fix_existing_frames", False, _CONTINUE,
-        aliases=("Mapper.fix_existing_images",)),
+    Flag("Mapper.fix_existing_frames", bool, "fix_existing_frames", "fix_existing_images",
+         "hold the poses of the --input_path model's images constant",
+         aliases=("Mapper.fix_existing_images",)),
     _na("Mapper.max_runtime_seconds", int, "max_runtime_seconds", -1,
         "the mapper runs to the end"),
     # ---- the incremental mapper (IncrementalPipelineOptions.mapper)
     Flag("Mapper.init_min_num_inliers", int, "mapper.init_min_num_inliers",
-         "init_min_num_inliers", "inliers the initial pair's relative pose needs"),
-    Flag("Mapper.init_max_error", float, "mapper.init_max_error", "two_view_max_error_px",
+         "initialization.min_num_inliers", "inliers the initial pair's relative pose needs"),
+    Flag("Mapper.init_max_error", float, "mapper.init_max_error", "two_view.max_error_px",
          "error threshold (px) of the 5-point RANSAC: initial pair and pairs the database "
          "left unverified"),
     _na("Mapper.init_max_forward_motion", float, "mapper.init_max_forward_motion", 0.95,
         "the initial pair is judged by the median angle of its rays "
         "(--Mapper.init_min_tri_angle)"),
     Flag("Mapper.init_min_tri_angle", float, "mapper.init_min_tri_angle",
-         "init_min_tri_angle_deg", "median triangulation angle (deg) the initial pair needs"),
+         "initialization.min_tri_angle_deg", "median triangulation angle (deg) the initial pair needs"),
     _na("Mapper.init_max_reg_trials", int, "mapper.init_max_reg_trials", 2,
         "a pair that fails to initialise is not tried again"),
     Flag("Mapper.abs_pose_max_error", float, "mapper.abs_pose_max_error",
-         "abs_pose_max_error_px", "reprojection threshold (px) of the P3P RANSAC"),
+         "registration.abs_pose_max_error_px", "reprojection threshold (px) of the P3P RANSAC"),
     Flag("Mapper.abs_pose_min_num_inliers", int, "mapper.abs_pose_min_num_inliers",
-         "abs_pose_min_num_inliers", "P3P inliers an image needs to register"),
+         "registration.abs_pose_min_num_inliers", "P3P inliers an image needs to register"),
     Flag("Mapper.abs_pose_min_inlier_ratio", float, "mapper.abs_pose_min_inlier_ratio",
-         "abs_pose_min_inlier_ratio", "P3P inlier ratio an image needs to register"),
+         "registration.abs_pose_min_inlier_ratio", "P3P inlier ratio an image needs to register"),
     _na("Mapper.abs_pose_refine_focal_length", bool, "mapper.abs_pose_refine_focal_length",
         False, _INTRINSICS),
     _na("Mapper.abs_pose_refine_extra_params", bool, "mapper.abs_pose_refine_extra_params",
@@ -217,12 +231,12 @@ FLAGS: tuple[Flag, ...] = (
     _na("Mapper.ba_global_prune_points_min_coverage_gain", float,
         "mapper.ba_global_prune_points_min_coverage_gain", 0.05, "every point is adjusted"),
     Flag("Mapper.filter_max_reproj_error", float, "mapper.filter_max_reproj_error",
-         "max_reproj_error_px", "reprojection error (px) within which an observation is "
-         "kept (triangulation and pruning)"),
+         "filtering.max_reproj_error_px", "reprojection error (px) within which an "
+         "observation is kept"),
     Flag("Mapper.filter_min_tri_angle", float, "mapper.filter_min_tri_angle",
-         "min_tri_angle_deg", "angle (deg) a point needs between its rays (triangulation "
-         "and pruning)"),
-    Flag("Mapper.max_reg_trials", int, "mapper.max_reg_trials", "max_registration_trials",
+         "filtering.min_tri_angle_deg", "angle (deg) a point needs between its widest rays "
+         "to be kept"),
+    Flag("Mapper.max_reg_trials", int, "mapper.max_reg_trials", "registration.max_trials",
          "times a failed image is tried again as the model grows"),
     _na("Mapper.image_selection_method", str, "mapper.image_selection_method",
         "MIN_UNCERTAINTY", "the registration order is --order"),
@@ -242,8 +256,9 @@ FLAGS: tuple[Flag, ...] = (
         _TRIANGULATOR),
     _na("Mapper.tri_re_min_ratio", float, "triangulation.re_min_ratio", 0.2, _TRIANGULATOR),
     _na("Mapper.tri_re_max_trials", int, "triangulation.re_max_trials", 1, _TRIANGULATOR),
-    _na("Mapper.tri_min_angle", float, "triangulation.min_angle", 1.5,
-        "points are created and kept at --Mapper.filter_min_tri_angle"),
+    Flag("Mapper.tri_min_angle", float, "triangulation.min_angle",
+         "triangulation.min_tri_angle_deg", "angle (deg) a new point needs between its "
+         "widest rays"),
     _na("Mapper.tri_ignore_two_view_tracks", bool, "triangulation.ignore_two_view_tracks",
         True, "a point needs compatible features in at least three images"),
 )
@@ -260,24 +275,35 @@ def lookup(name: str) -> Flag:
     return flag
 
 
+def get_field(options: MapperOptions, path: str) -> Any:
+    """The value of a field of MapperOptions or of its components ("registration.order")."""
+    value: Any = options
+    for name in path.split("."):
+        value = getattr(value, name)
+    return value
+
+
 def mapper_options(values: dict[str, Any], base: MapperOptions | None = None) -> MapperOptions:
-    """`base` (default: MapperOptions()) with the option values by name (parsed, any
-    accepted name) applied. Each not-applicable option given another value than its
-    default is named once in the log."""
-    fields: dict[str, Any] = {}
+    """A copy of `base` (default: MapperOptions()) with the option values by name (parsed,
+    any accepted name) applied and checked. Each not-applicable option given another value
+    than its default is named once in the log."""
+    options = copy.deepcopy(base or MapperOptions())
     for name, value in values.items():
         flag = lookup(name)
         if flag.field is not None:
             value = flag.convert(value) if flag.convert else value
             if value is not None:
-                fields[flag.field] = value
+                *components, field_name = flag.field.split(".")
+                setattr(get_field(options, ".".join(components)) if components else options,
+                        field_name, value)
         elif value != flag.default:
             logger.warning("colmap-ext: --%s %s: not applicable: %s", flag.name, shown(value),
                            flag.help)
     try:
-        return dataclasses.replace(base or MapperOptions(), **fields)
+        options.check()
     except ValueError as exc:
         raise UserError(str(exc)) from None
+    return options
 
 
 def read_project(path: str | Path) -> tuple[dict[str, Any], dict[str, str]]:
@@ -333,6 +359,19 @@ def pycolmap_values(options: Any) -> dict[str, Any]:
             value = "" if value == Path(".") else str(value)
         values[flag.name] = getattr(value, "name", value)  # enums by name, as COLMAP's CLI
     return values
+
+
+def pycolmap_options(options: Any) -> MapperOptions:
+    """MapperOptions from a `pycolmap.IncrementalPipelineOptions`. Its intrinsics
+    refinement (on by pycolmap's default, which cannot be told from a request) is not
+    applied, and named in the log: the intrinsics are known. To refine them, set
+    MapperOptions.bundle_adjustment.refine_* (or pass --Mapper.ba_refine_* 1)."""
+    values = pycolmap_values(options)
+    for name in INTRINSICS_REFINEMENT:
+        if values.pop(name):
+            logger.warning("colmap-ext: --%s 1: not applied from pycolmap's options: %s",
+                           name, _INTRINSICS)
+    return mapper_options(values)
 
 
 def help_text(flag: Flag) -> str:

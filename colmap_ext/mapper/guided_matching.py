@@ -35,11 +35,11 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     index, angles = model.nearest(image_id, other_id)
     index, angles = index[kps], angles[kps]
     E = essential_matrix(model.poses[other_id], model.poses[image_id])
-    max_error = options.max_reproj_error_px / model.focal(image_id)
+    max_error = options.guided_matching.max_epipolar_error_px / model.focal(image_id)
     x1 = np.repeat(model.normalized[image_id][kps], index.shape[1], axis=0)
     errors = sampson_errors(E, x1, model.normalized[other_id][index.ravel()])
     compatible = (errors.reshape(index.shape) <= max_error) & \
-        (angles <= options.max_descriptor_distance)
+        (angles <= options.guided_matching.max_descriptor_distance)
     first = np.argmax(compatible, axis=1)  # nearest compatible descriptor
     rows = np.flatnonzero(compatible.any(axis=1))
     kps, other, angles = kps[rows], index[rows, first[rows]], angles[rows, first[rows]]

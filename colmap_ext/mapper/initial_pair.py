@@ -35,16 +35,16 @@ def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
     try:
         result = solvers.relative_pose(
             model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
-            max_error=options.two_view_max_error_px / focal,
-            min_num_inliers=options.init_min_num_inliers, seed=options.seed)
+            max_error=options.two_view.max_error_px / focal,
+            min_num_inliers=options.initialization.min_num_inliers, seed=options.seed)
     except solvers.EstimationError:
         return None
     inliers = matches[result.inlier_mask]
     identity = pycolmap.Rigid3d()
     xyz, valid = solvers.triangulate(identity, result.cam2_from_cam1, model.rays[id1][inliers[:, 0]],
                                      model.rays[id2][inliers[:, 1]],
-                                     min_angle_deg=options.min_tri_angle_deg)
-    if valid.sum() < options.init_min_num_inliers:
+                                     min_angle_deg=options.triangulation.min_tri_angle_deg)
+    if valid.sum() < options.initialization.min_num_inliers:
         return None
     xyz, inliers = xyz[valid], inliers[valid]
     centre2 = result.cam2_from_cam1.inverse().translation
@@ -59,15 +59,15 @@ def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray], options: 
                         excluded: set[Pair]) -> TwoViewReconstruction | None:
     """The requested pair, or the best-conditioned among the pairs with most matches:
     most well-triangulated points among those with a wide enough median angle."""
-    if options.init_image_id1 >= 0 or options.init_image_id2 >= 0:
+    if options.initialization.image_id1 >= 0 or options.initialization.image_id2 >= 0:
         return _requested_pair(model, matches, options)
     candidates = sorted((pair for pair, m in matches.items()
-                         if len(m) >= options.init_min_num_inliers and pair not in excluded),
+                         if len(m) >= options.initialization.min_num_inliers and pair not in excluded),
                         key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
     best = None
     for pair in candidates:
         two_view = reconstruct_pair(model, pair, matches[pair], options)
-        if two_view is None or two_view.median_angle_deg < options.init_min_tri_angle_deg:
+        if two_view is None or two_view.median_angle_deg < options.initialization.min_tri_angle_deg:
             excluded.add(pair)
             continue
         if best is None or len(two_view.matches) > len(best.matches):
@@ -77,7 +77,7 @@ def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray], options: 
 
 def _requested_pair(model: Model, matches: dict[Pair, np.ndarray],
                     options: MapperOptions) -> TwoViewReconstruction:
-    id1, id2 = options.init_image_id1, options.init_image_id2
+    id1, id2 = options.initialization.image_id1, options.initialization.image_id2
     for image_id in (id1, id2):
         if image_id not in model.db.images:
             raise UserError(f"--Mapper.init_image_id1/2: no image with id {image_id} in the database")

@@ -84,9 +84,9 @@ def find_similarity(target: Model, source: Model, raw_graph: dict[int, dict[int,
     pairs = sorted(itertools.combinations(registrations, 2),
                    key=lambda pair: -(pair[0].num_inliers + pair[1].num_inliers))
     for a, b in pairs:
-        if a.num_inliers + b.num_inliers < options.abs_pose_min_num_inliers:
+        if a.num_inliers + b.num_inliers < options.registration.abs_pose_min_num_inliers:
             break
-        similarity = similarity_from(a, b, options.merge_max_angle_deg)
+        similarity = similarity_from(a, b, options.merging.max_angle_deg)
         if similarity is not None:
             return similarity, (a, b)
     return None
@@ -100,13 +100,13 @@ def cross_register(image_model: Model, image_id: int, points_model: Model,
     `into_target` says whether `points_model` is the target of the similarity."""
     neighbours = [i for i in raw_graph.get(image_id, {}) if i in points_model.poses]
     kps, point_ids = _descriptor_correspondences(image_model, image_id, points_model, neighbours,
-                                                 options.max_descriptor_distance)
+                                                 options.guided_matching.max_descriptor_distance)
     if len(kps) < MIN_CROSS_INLIERS:
         return None
     try:
         result = solvers.absolute_pose(
             image_model.rays[image_id][kps], points_model.xyz[point_ids],
-            max_error=options.abs_pose_max_error_px / image_model.focal(image_id),
+            max_error=options.registration.abs_pose_max_error_px / image_model.focal(image_id),
             min_num_inliers=MIN_CROSS_INLIERS, seed=options.seed)
     except solvers.EstimationError:
         return None
@@ -173,6 +173,7 @@ def join(target: Model, source: Model, similarity: Similarity,
     `similarity`, and each cross-registration's inliers observing the same point."""
     model = Model(target.db, target.nearest,
                   sorted(set(target.image_ids) | set(source.image_ids)))
+    model.fixed_image_ids = target.fixed_image_ids | source.fixed_image_ids
     for image_id in target.registration_order:
         model.register(image_id, target.poses[image_id])
     for image_id in source.registration_order:

@@ -22,7 +22,7 @@ class Model:
         self.db = db
         self.nearest = nearest  # descriptor searches, shared by every model of a run
         self.image_ids = sorted(image_ids if image_ids is not None else db.images)
-        self.cameras = db.cameras
+        self.cameras = dict(db.cameras)  # this model's: bundle adjustment may refine them
         self.keypoints: dict[int, np.ndarray] = {}
         self.normalized: dict[int, np.ndarray] = {}
         self.rays: dict[int, np.ndarray] = {}
@@ -30,16 +30,12 @@ class Model:
         self.point_of: dict[int, np.ndarray] = {}
         for image_id in self.image_ids:
             image = db.images[image_id]
-            camera = db.cameras[image.camera_id]
-            xy = camera.cam_from_img(image.keypoints) if len(image.keypoints) \
-                else np.zeros((0, 2))
-            rays = np.hstack([xy, np.ones((len(xy), 1))])
             self.keypoints[image_id] = image.keypoints
-            self.normalized[image_id] = xy
-            self.rays[image_id] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
             self.descriptors[image_id] = image.descriptors
             self.point_of[image_id] = np.full(len(image.keypoints), -1, dtype=np.int64)
+            self._compute_rays(image_id)
         self.poses: dict[int, pycolmap.Rigid3d] = {}
+        self.fixed_image_ids: set[int] = set()  # poses bundle adjustment holds constant
         self.registration_order: list[int] = []
         self.xyz = np.zeros((1024, 3))
         self.tracks: dict[int, dict[int, int]] = {}
@@ -53,6 +49,21 @@ class Model:
     def focal(self, image_id: int) -> float:
         camera = self.camera(image_id)
         return 0.5 * (camera.focal_length_x + camera.focal_length_y)
+
+    def set_camera(self, camera_id: int, camera: pycolmap.Camera) -> None:
+        """New intrinsics for a camera, and the rays of its images from them."""
+        self.cameras[camera_id] = camera
+        for image_id in self.image_ids:
+            if self.db.images[image_id].camera_id == camera_id:
+                self._compute_rays(image_id)
+
+    def _compute_rays(self, image_id: int) -> None:
+        keypoints = self.keypoints[image_id]
+        xy = self.camera(image_id).cam_from_img(keypoints) if len(keypoints) \
+            else np.zeros((0, 2))
+        rays = np.hstack([xy, np.ones((len(xy), 1))])
+        self.normalized[image_id] = xy
+        self.rays[image_id] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
     def register(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
         self.poses[image_id] = cam_from_world

@@ -1,90 +1,227 @@
-"""The mapper's parameters, with the defaults the method uses and why."""
+"""The mapper's options, one class per component as COLMAP arranges them: two-view
+geometry, initialization, registration, guided matching, triangulation, filtering,
+bundle adjustment and merging, gathered in `MapperOptions`. Each field has one default
+and one comment; `check()` names the first field out of its range. Why the defaults are
+what they are is measured in BENCHMARKS.md ("Why the defaults").
+"""
 
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, field, fields
 
+# Registration orders: COLMAP's (the image seeing most model points first) and the
+# paper's (the image next in name order to a registered one).
+ORDERS = ("visibility", "sequence")
 # Robust losses of bundle adjustment (pycolmap.LossFunctionType, lower case).
 BA_LOSSES = ("cauchy", "soft_l1", "trivial")
 
 
+def _require(condition: bool, component: object, name: str, rule: str) -> None:
+    if not condition:
+        value = getattr(component, name)
+        raise ValueError(f"{type(component).__name__}.{name} must be {rule}, got {value!r}")
+
+
+@dataclass
+class TwoViewOptions:
+    """Verification of image pairs the database left unverified (two_view.py)."""
+
+    # Sampson error threshold (px) of the 5-point RANSAC, also the initial pair's.
+    max_error_px: float = 2.0
+    # Inliers a pair needs to be used.
+    min_num_inliers: int = 15
+
+    def check(self) -> None:
+        _require(self.max_error_px > 0, self, "max_error_px", "> 0")
+        _require(self.min_num_inliers >= 5, self, "min_num_inliers", ">= 5")
+
+
+@dataclass
+class InitializationOptions:
+    """Choosing and reconstructing the first two images (initial_pair.py)."""
+
+    # The initial pair's image ids; -1: the mapper chooses.
+    image_id1: int = -1
+    image_id2: int = -1
+    # Inliers of the pair's relative pose that triangulate.
+    min_num_inliers: int = 30
+    # Median triangulation angle (deg) the pair needs: it fixes the depth.
+    min_tri_angle_deg: float = 4.0
+
+    def check(self) -> None:
+        _require(self.image_id1 >= -1, self, "image_id1", ">= -1")
+        _require(self.image_id2 >= -1, self, "image_id2", ">= -1")
+        _require(self.min_num_inliers >= 5, self, "min_num_inliers", ">= 5")
+        _require(0 <= self.min_tri_angle_deg < 180, self, "min_tri_angle_deg", "in [0, 180)")
+
+
+@dataclass
+class RegistrationOptions:
+    """Posing the next image by P3P RANSAC on 2D-3D correspondences (registration.py)."""
+
+    # Which image next: one of ORDERS.
+    order: str = "visibility"
+    # Reprojection error threshold (px) of the P3P RANSAC.
+    abs_pose_max_error_px: float = 4.0
+    # P3P inliers an image needs to register.
+    abs_pose_min_num_inliers: int = 15
+    # P3P inliers as a fraction of the image's correspondences.
+    abs_pose_min_inlier_ratio: float = 0.2
+    # Times an image that failed to register is tried again as the model grows.
+    max_trials: int = 3
+
+    def check(self) -> None:
+        _require(self.order in ORDERS, self, "order", f"one of {', '.join(ORDERS)}")
+        _require(self.abs_pose_max_error_px > 0, self, "abs_pose_max_error_px", "> 0")
+        _require(self.abs_pose_min_num_inliers >= 4, self, "abs_pose_min_num_inliers", ">= 4")
+        _require(0 <= self.abs_pose_min_inlier_ratio <= 1, self, "abs_pose_min_inlier_ratio",
+                 "in [0, 1]")
+        _require(self.max_trials >= 1, self, "max_trials", ">= 1")
+
+
+@dataclass
+class GuidedMatchingOptions:
+    """Features of a new image matched to registered images near it (paper, step 4c;
+    guided_matching.py), for triangulation, registration and merging."""
+
+    # Nearest descriptors per keypoint in each registered image (the paper takes 20).
+    num_neighbors: int = 3
+    # Registered images matched: those most connected to the new image.
+    num_images: int = 8
+    # Largest descriptor angle (radians, as COLMAP's SIFT matcher) of a compatible feature.
+    max_descriptor_distance: float = 0.7
+    # Largest distance (px) of a compatible feature from the epipolar line.
+    max_epipolar_error_px: float = 3.0
+
+    def check(self) -> None:
+        _require(self.num_neighbors >= 1, self, "num_neighbors", ">= 1")
+        _require(self.num_images >= 1, self, "num_images", ">= 1")
+        _require(0 < self.max_descriptor_distance <= 3.15, self, "max_descriptor_distance",
+                 "in (0, pi]")
+        _require(self.max_epipolar_error_px > 0, self, "max_epipolar_error_px", "> 0")
+
+
+@dataclass
+class TriangulationOptions:
+    """New points and longer tracks from compatible features (triangulation.py)."""
+
+    # An observation joins a point when it reprojects within this error (px).
+    max_reproj_error_px: float = 3.0
+    # Smallest angle (deg) between a new point's widest pair of rays.
+    min_tri_angle_deg: float = 1.5
+
+    def check(self) -> None:
+        _require(self.max_reproj_error_px > 0, self, "max_reproj_error_px", "> 0")
+        _require(0 <= self.min_tri_angle_deg < 180, self, "min_tri_angle_deg", "in [0, 180)")
+
+
+@dataclass
+class FilteringOptions:
+    """Dropping observations, points and images the model no longer supports
+    (paper, step 4e; pruning.py)."""
+
+    # An observation is kept while it reprojects within this error (px).
+    max_reproj_error_px: float = 3.0
+    # A point is kept while its widest pair of rays spans this angle (deg).
+    min_tri_angle_deg: float = 1.5
+    # Images a point must be seen in ...
+    min_track_length: int = 3
+    # ... once this many images registered after its creation could observe it.
+    track_grace_registrations: int = 3
+    # A finished model keeps an image whose points fix its rotation to within this many
+    # times the keypoint noise (pruning.rotation_uncertainty).
+    max_rotation_uncertainty: float = 15.0
+
+    def check(self) -> None:
+        _require(self.max_reproj_error_px > 0, self, "max_reproj_error_px", "> 0")
+        _require(0 <= self.min_tri_angle_deg < 180, self, "min_tri_angle_deg", "in [0, 180)")
+        _require(self.min_track_length >= 2, self, "min_track_length", ">= 2")
+        _require(self.track_grace_registrations >= 0, self, "track_grace_registrations", ">= 0")
+        _require(self.max_rotation_uncertainty > 0, self, "max_rotation_uncertainty", "> 0")
+
+
+@dataclass
+class BundleAdjustmentOptions:
+    """Local and global refinement through pycolmap's Ceres (bundle_adjustment.py)."""
+
+    # Images of a local adjustment: the new one and its most connected registered images.
+    local_num_images: int = 6
+    # Ceres iterations of a local adjustment.
+    local_max_iterations: int = 25
+    # A global adjustment whenever the registered images have grown by this ratio.
+    global_images_ratio: float = 1.1
+    # Ceres iterations of a global adjustment.
+    global_max_iterations: int = 50
+    # The robust loss, one of BA_LOSSES, and its scale (px).
+    loss: str = "cauchy"
+    loss_scale_px: float = 1.0
+    # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
+    function_tolerance: float = 1e-5
+    # Refine the intrinsics in global adjustments (the method holds them constant).
+    refine_focal_length: bool = False
+    refine_principal_point: bool = False
+    refine_extra_params: bool = False
+
+    @property
+    def refines_intrinsics(self) -> bool:
+        return self.refine_focal_length or self.refine_principal_point or \
+            self.refine_extra_params
+
+    def check(self) -> None:
+        _require(self.local_num_images >= 2, self, "local_num_images", ">= 2")
+        _require(self.local_max_iterations >= 1, self, "local_max_iterations", ">= 1")
+        _require(self.global_images_ratio > 1, self, "global_images_ratio", "> 1")
+        _require(self.global_max_iterations >= 1, self, "global_max_iterations", ">= 1")
+        _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
+        _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
+        _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
+
+
+@dataclass
+class MergingOptions:
+    """Joining models that fell apart (merging.py)."""
+
+    # Two images of one model, posed among the other's points, must imply the same
+    # similarity: rotations and directions between centres within this angle (deg).
+    max_angle_deg: float = 5.0
+    # Rounds of retriangulation and global adjustment after a join.
+    refinement_rounds: int = 3
+
+    def check(self) -> None:
+        _require(0 < self.max_angle_deg < 180, self, "max_angle_deg", "in (0, 180)")
+        _require(self.refinement_rounds >= 0, self, "refinement_rounds", ">= 0")
+
+
 @dataclass
 class MapperOptions:
-    # Registration order: "visibility" (COLMAP's: the image seeing most model points
-    # first) or "sequence" (the paper's: the image next in name order to a registered one).
-    order: str = "visibility"
-    # Initial pair (COLMAP's --Mapper.init_image_id1/2); -1 lets the mapper choose.
-    init_image_id1: int = -1
-    init_image_id2: int = -1
-    # Two-view geometry: Sampson error threshold and the support a pair needs.
-    two_view_max_error_px: float = 2.0
-    two_view_min_num_inliers: int = 15
-    # Initial pair: enough inliers and a median triangulation angle that fixes depth.
-    init_min_num_inliers: int = 30
-    init_min_tri_angle_deg: float = 4.0
-    # Absolute pose (P3P RANSAC): reprojection threshold and the support it needs.
-    abs_pose_max_error_px: float = 4.0
-    abs_pose_min_num_inliers: int = 15
-    abs_pose_min_inlier_ratio: float = 0.2
-    # Triangulation and pruning: an observation is geometrically compatible with a point
-    # when it reprojects within this error; a point needs this angle between its rays.
-    max_reproj_error_px: float = 3.0
-    min_tri_angle_deg: float = 1.5
-    # Guided matching (paper, step 4c) against the guided_num_images registered images
-    # most connected to the new one: per keypoint, its guided_num_neighbors nearest
-    # descriptors there; a feature is compatible when its descriptor angle is below
-    # max_descriptor_distance (radians, as COLMAP's SIFT matcher measures it) and it lies
-    # within max_reproj_error_px of the epipolar line. The closest descriptor wins.
-    # The paper takes 20 neighbours; with SIFT that admits look-alike features along the
-    # epipolar line, and 3 measured best (templeSparseRing R_err max 1.31 -> 0.31 deg).
-    guided_num_neighbors: int = 3
-    guided_num_images: int = 8
-    max_descriptor_distance: float = 0.7
-    # Pruning (paper, step 4e): a point needs support in this many images, once the
-    # images registered after its creation have had their chance to observe it.
-    min_track_length: int = 3
-    track_grace_registrations: int = 3
-    # Bundle adjustment (pycolmap/Ceres, intrinsics constant): local around each new
-    # image, global whenever the model has grown by ba_global_images_ratio, and at the end.
-    ba_local_num_images: int = 6
-    ba_local_max_iterations: int = 25
-    ba_global_images_ratio: float = 1.1
-    ba_global_max_iterations: int = 50
-    # The robust loss, one of BA_LOSSES; Cauchy at 1 px is what
-    # makes the poses accurate, and what makes Ceres slow: it converges linearly,
-    # ~27 iterations a solve where soft-L1 takes ~8 and the trivial loss ~6 (templeSparseRing
-    # R_err max 0.31 deg against 0.84 and 1.73; benchmarks/mapper_profile.py measures it).
-    ba_loss: str = "cauchy"
-    ba_loss_scale_px: float = 1.0
-    # Ceres stops when an iteration lowers the cost by less than this fraction. COLMAP
-    # runs to the iteration limit (0); with the robust loss that only creeps (< 0.1 %
-    # per iteration) and costs 2x the mapper's time for no measured gain.
-    ba_function_tolerance: float = 1e-5
-    # A finished model keeps an image only if its points fix its rotation to within this
-    # many times the keypoint noise (pruning.rotation_uncertainty: it falls as
-    # 1/sqrt(points) and rises as the field of view narrows). Measured on final models:
-    # synthetic scenes (56 deg field of view) 3 or less, templeSparseRing (24 deg) and
-    # dinoSparseRing end to end (11 deg) under 10; dinoSparseRing on COLMAP's features,
-    # image 5 (21 points) 18.7: it ended 2 deg off, every other image under 10.
-    max_rotation_uncertainty: float = 15.0
-    # Images that fail to register are tried again this many times as the model grows.
-    max_registration_trials: int = 3
-    # A model smaller than this is not kept; the remaining images start a new model.
-    min_model_size: int = 3
-    max_num_models: int = 50
-    # False: only the first model is reconstructed (COLMAP's --Mapper.multiple_models 0).
+    """Everything the mapper takes: its components, and the run's own settings."""
+
+    two_view: TwoViewOptions = field(default_factory=TwoViewOptions)
+    initialization: InitializationOptions = field(default_factory=InitializationOptions)
+    registration: RegistrationOptions = field(default_factory=RegistrationOptions)
+    guided_matching: GuidedMatchingOptions = field(default_factory=GuidedMatchingOptions)
+    triangulation: TriangulationOptions = field(default_factory=TriangulationOptions)
+    filtering: FilteringOptions = field(default_factory=FilteringOptions)
+    bundle_adjustment: BundleAdjustmentOptions = field(default_factory=BundleAdjustmentOptions)
+    merging: MergingOptions = field(default_factory=MergingOptions)
+    # Start new models from the images left over; False: only the first model.
     multiple_models: bool = True
+    # Most models reconstructed.
+    max_num_models: int = 50
+    # A model with fewer registered images is not kept.
+    min_model_size: int = 3
     # Read the points' colours from the images when writing the models.
     extract_colors: bool = True
-    # Models are joined when two images of one, posed among the other's points, imply
-    # the same similarity: rotations and directions between centres within this angle.
-    # P3P from few points through a narrow field of view errs by a few degrees (dino
-    # rings: 1-2.5); unrelated wrong poses differ by tens of degrees.
-    merge_max_angle_deg: float = 5.0
-    # Rounds of retriangulation and global adjustment after joining two models.
-    merge_refinement_rounds: int = 3
+    # Continuing a model (--input_path): hold its images' poses constant.
+    fix_existing_images: bool = False
+    # Every snapshot_frames_freq registered images, write the model to a new folder of
+    # snapshot_path (COLMAP's snapshots); 0: never.
+    snapshot_path: str = ""
+    snapshot_frames_freq: int = 0
+    # RANSAC seed: with one, two runs give the same model bit for bit; None: unseeded.
     seed: int | None = None
+    # Threads of the descriptor searches and of Ceres; -1: every core.
     num_threads: int = -1
 
     def threads(self) -> int:
@@ -94,8 +231,18 @@ class MapperOptions:
         return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
             else os.cpu_count() or 1
 
-    def __post_init__(self) -> None:
-        if self.order not in ("visibility", "sequence"):
-            raise ValueError(f"order must be 'visibility' or 'sequence', got {self.order!r}")
-        if self.ba_loss not in BA_LOSSES:
-            raise ValueError(f"ba_loss must be one of {', '.join(BA_LOSSES)}, got {self.ba_loss!r}")
+    def components(self) -> dict[str, object]:
+        """The component options by field name."""
+        return {f.name: getattr(self, f.name) for f in fields(self)
+                if hasattr(getattr(self, f.name), "check")}
+
+    def check(self) -> None:
+        """ValueError naming the first option out of its range."""
+        for component in self.components().values():
+            component.check()
+        _require(self.max_num_models >= 1, self, "max_num_models", ">= 1")
+        _require(self.min_model_size >= 0, self, "min_model_size", ">= 0")
+        _require(self.snapshot_frames_freq >= 0, self, "snapshot_frames_freq", ">= 0")
+        _require(self.seed is None or self.seed >= 0, self, "seed", "None or >= 0")
+        _require(self.num_threads == -1 or self.num_threads >= 1, self, "num_threads",
+                 "-1 or >= 1")

@@ -27,7 +27,7 @@ from colmap_ext.mapper.registration import (descriptor_correspondences, register
                                             track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
-from colmap_ext.model_io import check_output_path, write_json, write_models
+from colmap_ext.model_io import check_output_path, read_model, write_json, write_models
 
 
 # Images tried per round before the mapper gives up on growing the model.
@@ -73,7 +73,19 @@ class IncrementalMapper:
         self.num_images_at_global_ba = 0
 
     def run(self, excluded_pairs: set[Pair]) -> bool:
-        """Reconstruct from the best initial pair; False when no pair initialises."""
+        """Reconstruct from the best initial pair, or go on from the model's registered
+        images when it has some (a continued model); False when no pair initialises."""
+        if self.model.poses:
+            self.num_images_at_global_ba = self.model.num_registered
+            self._advance(self.model.num_registered)
+        elif not self._initialize(excluded_pairs):
+            return False
+        while self._register_next():
+            pass
+        self._global_adjustment(final=True)
+        return True
+
+    def _initialize(self, excluded_pairs: set[Pair]) -> bool:
         with self.timer("initial pair"):
             two_view = choose_initial_pair(self.model, self.matches, self.options, excluded_pairs)
         if two_view is None:
@@ -84,9 +96,6 @@ class IncrementalMapper:
             triangulate_image(self.model, id2, [id1], self.options, min_views=2)
         self._global_adjustment()
         self._advance(2)
-        while self._register_next():
-            pass
-        self._global_adjustment(final=True)
         return True
 
     def refine_joined(self) -> None:
@@ -95,11 +104,11 @@ class IncrementalMapper:
         every image against its neighbours, which now include the images across the
         junction; the better poses of each round let the next match more of them."""
         self._global_adjustment()
-        for _ in range(self.options.merge_refinement_rounds):
+        for _ in range(self.options.merging.refinement_rounds):
             with self.timer("triangulation"):
                 for image_id in list(self.model.poses):
                     triangulate_image(self.model, image_id,
-                                      self._neighbours(image_id, self.options.guided_num_images),
+                                      self._neighbours(image_id, self.options.guided_matching.num_images),
                                       self.options, min_views=2)
             self._global_adjustment(final=True)
 
@@ -111,11 +120,11 @@ class IncrementalMapper:
         """Unregistered images to try, best first, in the configured order."""
         model = self.model
         unregistered = [i for i in model.image_ids if i not in model.poses
-                        and self.trials[i] < self.options.max_registration_trials
+                        and self.trials[i] < self.options.registration.max_trials
                         and any(o in model.poses for o in self.raw_graph.get(i, {}))]
         visible = {i: len(np.unique(track_correspondences(model, i, self.graph)[1]))
                    for i in unregistered}
-        if self.options.order == "sequence":
+        if self.options.registration.order == "sequence":
             registered = np.array([self.sequence_index[i] for i in model.poses])
             distance = {i: np.abs(registered - self.sequence_index[i]).min() for i in unregistered}
             return sorted(unregistered, key=lambda i: (distance[i], -visible[i]))
@@ -140,16 +149,33 @@ class IncrementalMapper:
                 continue
             self._after_registration(image_id)
             self._advance(1)
+            self._write_snapshot()
             self.trials.clear()  # the model has grown: failed images deserve a new chance
             return True
         return False
+
+    def _write_snapshot(self) -> None:
+        """Every snapshot_frames_freq registrations, the model so far in a new folder of
+        snapshot_path named by the time in milliseconds, as COLMAP's snapshots."""
+        options = self.options
+        if not options.snapshot_path or not options.snapshot_frames_freq or \
+                self.model.num_registered % options.snapshot_frames_freq:
+            return
+        with self.timer("export"):
+            folder = Path(options.snapshot_path) / f"{int(time.time() * 1000):013d}"
+            try:
+                folder.mkdir(parents=True, exist_ok=True)
+                export(self.model).write_binary(folder)
+            except (OSError, ValueError, RuntimeError) as exc:
+                raise UserError(f"cannot write a snapshot to {folder}: "
+                                f"{getattr(exc, 'strerror', None) or exc}") from None
 
     def _register(self, image_id: int) -> bool:
         """P3P on correspondences through verified matches and descriptor matches to
         nearby points; failing that, through raw matches too (pairs whose two-view
         verification failed can still hold enough inliers for an absolute pose)."""
         model, options = self.model, self.options
-        neighbours = self._neighbours(image_id, options.guided_num_images)
+        neighbours = self._neighbours(image_id, options.guided_matching.num_images)
         kps, point_ids = descriptor_correspondences(model, image_id, neighbours, options)
         for graph in (self.graph, self.raw_graph):
             more_kps, more_ids = track_correspondences(model, image_id, graph)
@@ -162,13 +188,14 @@ class IncrementalMapper:
         options = self.options
         with self.timer("triangulation"):
             triangulate_image(self.model, image_id,
-                              self._neighbours(image_id, options.guided_num_images), options,
+                              self._neighbours(image_id, options.guided_matching.num_images), options,
                               min_views=2)
-        if self.model.num_registered >= options.ba_global_images_ratio * self.num_images_at_global_ba:
+        ratio = options.bundle_adjustment.global_images_ratio
+        if self.model.num_registered >= ratio * self.num_images_at_global_ba:
             self._global_adjustment()
             return
-        local = [image_id] + self._neighbours(image_id, options.ba_local_num_images)
-        self._bundle_adjust(local, options.ba_local_max_iterations)
+        local = [image_id] + self._neighbours(image_id, options.bundle_adjustment.local_num_images)
+        self._bundle_adjust(local, options.bundle_adjustment.local_max_iterations)
         with self.timer("pruning"):
             prune(self.model, local, options)
 
@@ -176,30 +203,40 @@ class IncrementalMapper:
         model, options = self.model, self.options
         registered = list(model.poses)
         for _ in range(2 if final else 1):
-            self._bundle_adjust(registered, options.ba_global_max_iterations)
+            self._bundle_adjust(registered, options.bundle_adjustment.global_max_iterations,
+                                refine_intrinsics=True)
             with self.timer("pruning"):
                 prune(model, registered, options, final=final)
         self.num_images_at_global_ba = model.num_registered
 
-    def _bundle_adjust(self, image_ids: list[int], max_iterations: int) -> None:
+    def _bundle_adjust(self, image_ids: list[int], max_iterations: int,
+                       refine_intrinsics: bool = False) -> None:
         with self.timer("bundle adjustment"):
-            iterations = bundle_adjust(self.model, image_ids, self.options, max_iterations)
+            iterations = bundle_adjust(self.model, image_ids, self.options, max_iterations,
+                                       refine_intrinsics)
         self.timer.counts["bundle adjustment solves"] += 1
         self.timer.counts["bundle adjustment iterations"] += iterations
 
 
 def reconstruct(db: DatabaseContents, options: MapperOptions,
                 image_names: list[str] | None = None, timer: StageTimer | None = None,
-                progress: bool = True) -> list[pycolmap.Reconstruction]:
-    """All models that the database's images give, largest first (nothing written)."""
+                progress: bool = True, existing: pycolmap.Reconstruction | None = None,
+                ) -> list[pycolmap.Reconstruction]:
+    """All models that the database's images give, largest first (nothing written).
+    `existing`, a model of this database's images, is continued: the first model starts
+    from its poses and points, and the database's other images are registered into it."""
+    options.check()
     timer = timer or StageTimer()
-    image_ids = _select_images(db, image_names)
+    existing_ids = _existing_image_ids(db, existing) if existing is not None else {}
+    image_ids = sorted(set(_select_images(db, image_names)) | set(existing_ids.values()))
     nearest = NearestDescriptors({i: db.images[i].descriptors for i in image_ids},
-                                 options.guided_num_neighbors, NEAREST_DESCRIPTORS_BYTES,
+                                 options.guided_matching.num_neighbors, NEAREST_DESCRIPTORS_BYTES,
                                  options.threads())
     with timer("two-view geometry"):
         model = Model(db, nearest, image_ids)
         matches = verified_matches(model, options, progress)
+    if existing is not None:
+        _continue_from(model, existing, existing_ids, options.fix_existing_images)
     all_matches = matches
     models: list[Model] = []
     remaining = image_ids
@@ -232,7 +269,8 @@ def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: 
                  timer: StageTimer) -> list[Model]:
     """Join models two at a time while a pair of them gives a similarity (merging.py),
     the larger one as the target, and adjust each joined model; largest first."""
-    models = sorted(models, key=lambda model: -model.num_registered)
+    # The larger model is the target, unless the other holds fixed poses (a continued model).
+    models = sorted(models, key=lambda model: (not model.fixed_image_ids, -model.num_registered))
     if len(models) < 2:
         return models
     raw_graph = pair_graph(models[0].db.raw_matches)
@@ -251,7 +289,43 @@ def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: 
                                    if p[0] in images and p[1] in images},
                           options, timer, None).refine_joined()
         models = sorted([m for m in models if m is not target and m is not source] + [joined],
-                        key=lambda model: -model.num_registered)
+                        key=lambda model: (not model.fixed_image_ids, -model.num_registered))
+
+
+def _existing_image_ids(db: DatabaseContents,
+                        existing: pycolmap.Reconstruction) -> dict[int, int]:
+    """The database's id of each registered image of `existing`, matched by name; a
+    UserError unless each is in the database with the keypoints the model observes."""
+    by_name = {image.name: image_id for image_id, image in db.images.items()}
+    registered = [existing.images[i] for i in sorted(existing.reg_image_ids())]
+    missing = [image.name for image in registered if image.name not in by_name]
+    if missing:
+        raise UserError(f"{len(missing)} images of the input model are not in the database: "
+                        f"{', '.join(missing[:3])}" + (" ..." if len(missing) > 3 else ""))
+    for image in registered:
+        keypoints = db.images[by_name[image.name]].keypoints
+        observed = [(point2D_idx, point2D.xy) for point2D_idx, point2D in
+                    enumerate(image.points2D) if point2D.has_point3D()]
+        if len(image.points2D) != len(keypoints) or any(
+                np.abs(keypoints[idx] - xy).max() > 0.01 for idx, xy in observed):
+            raise UserError(f"image {image.name} of the input model has other keypoints than "
+                            "the database's: the model was made from another database")
+    return {image.image_id: by_name[image.name] for image in registered}
+
+
+def _continue_from(model: Model, existing: pycolmap.Reconstruction, image_ids: dict[int, int],
+                   fix_poses: bool) -> None:
+    """Put the registered images and the points of `existing` into the empty `model`
+    (input image id -> database image id: `image_ids`)."""
+    for input_id, image_id in image_ids.items():
+        model.register(image_id, existing.images[input_id].cam_from_world())
+    if fix_poses:
+        model.fixed_image_ids = set(image_ids.values())
+    for point in existing.points3D.values():
+        track = {image_ids[element.image_id]: element.point2D_idx
+                 for element in point.track.elements if element.image_id in image_ids}
+        if len(track) >= 2:
+            model.add_point(point.xyz, track)
 
 
 def _select_images(db, image_names: list[str] | None) -> list[int]:
@@ -275,20 +349,27 @@ def export(model: Model) -> pycolmap.Reconstruction:
 def run(database_path: str | Path, image_path: str | Path, output_path: str | Path,
         options: MapperOptions | None = None, *, overwrite: bool = False,
         output_type: str = "BIN", image_names: list[str] | None = None,
+        input_path: str | Path | None = None,
         progress: bool = True) -> dict[int, pycolmap.Reconstruction]:
     """Reconstruct, then write OUTPUT/0, OUTPUT/1, ... and OUTPUT/mapper_summary.json,
-    like `pycolmap.incremental_mapping`. The database is read, never written."""
+    like `pycolmap.incremental_mapping`; with `input_path`, continue that model (read,
+    never written). The database is read, never written."""
     options = options or MapperOptions()
+    try:
+        options.check()
+    except ValueError as exc:
+        raise UserError(str(exc)) from None
     image_path = Path(image_path)
     if not image_path.is_dir():
         raise UserError(f"image path not found: {image_path}")
+    existing = _read_input_model(input_path, output_path) if input_path else None
     output_path = check_output_path(output_path, overwrite)
     timer = StageTimer()
     start = time.perf_counter()
     with timer("read database"):
         db = read_database(database_path)
     _check_images(db, image_path)
-    reconstructions = reconstruct(db, options, image_names, timer, progress)
+    reconstructions = reconstruct(db, options, image_names, timer, progress, existing)
     if not reconstructions:
         raise UserError("no model could be reconstructed: no image pair gave a relative pose "
                         "with enough well-triangulated points")
@@ -300,6 +381,15 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
     summary = summarize(reconstructions, timer, time.perf_counter() - start)
     write_json(summary, output_path / "mapper_summary.json")
     return dict(enumerate(reconstructions))
+
+
+def _read_input_model(input_path: str | Path, output_path: str | Path) -> pycolmap.Reconstruction:
+    """The model to continue; refused where writing the output would replace it."""
+    input_path, output_path = Path(input_path).resolve(), Path(output_path).resolve()
+    if input_path.parent == output_path and input_path.name.isdigit():
+        raise UserError(f"--input_path {input_path} is a model of --output_path, which the "
+                        "result would replace: write the result to another folder")
+    return read_model(input_path)
 
 
 def _check_images(db: DatabaseContents, image_path: Path) -> None:

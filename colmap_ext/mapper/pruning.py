@@ -22,11 +22,11 @@ def prune(model: Model, image_ids: list[int], options: MapperOptions,
         kps, point_ids = model.observations(image_id)
         touched.update(point_ids.tolist())
         errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-        for point_id in point_ids[errors > options.max_reproj_error_px].tolist():
+        for point_id in point_ids[errors > options.filtering.max_reproj_error_px].tolist():
             model.delete_observation(point_id, image_id)
             removed_observations += 1
     candidates = [p for p in touched if p in model.tracks]
-    wide = has_triangulation_angle(model, candidates, options.min_tri_angle_deg)
+    wide = has_triangulation_angle(model, candidates, options.filtering.min_tri_angle_deg)
     removed_points = 0
     for point_id, wide_enough in zip(candidates, wide):
         if not _supported(model, point_id, wide_enough, options, final):
@@ -41,7 +41,7 @@ def _supported(model: Model, point_id: int, wide_enough: bool, options: MapperOp
     if len(track) < 2:
         return False
     age = model.num_registered - model.born[point_id]
-    if len(track) < options.min_track_length and (final or age >= options.track_grace_registrations):
+    if len(track) < options.filtering.min_track_length and (final or age >= options.filtering.track_grace_registrations):
         return False
     return bool(wide_enough)
 
@@ -93,10 +93,10 @@ def deregister_ill_conditioned(model: Model, options: MapperOptions) -> list[int
     and nothing registered after it corrects it. Judged at the end, not at
     registration, an image that later images and joined models support is kept."""
     weak = []
-    for image_id in list(model.poses):
+    for image_id in sorted(set(model.poses) - model.fixed_image_ids):
         _, point_ids = model.observations(image_id)
         if rotation_uncertainty(model.poses[image_id], model.xyz[point_ids]) > \
-                options.max_rotation_uncertainty:
+                options.filtering.max_rotation_uncertainty:
             model.deregister(image_id)
             weak.append(image_id)
     return weak

@@ -40,7 +40,7 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
                                                     for other_id, other_kps, _ in observed], 2)
     kps, point_ids = [], []
     for (_, _, other_points), (index, angles) in zip(observed, found):
-        ok = (angles[:, 0] <= options.max_descriptor_distance) & \
+        ok = (angles[:, 0] <= options.guided_matching.max_descriptor_distance) & \
              (angles[:, 0] < MAX_RATIO * angles[:, 1])
         kps.append(np.flatnonzero(ok))
         point_ids.append(other_points[index[ok, 0]])
@@ -55,17 +55,17 @@ def register_image(model: Model, image_id: int, kps: np.ndarray, point_ids: np.n
     points' tracks (one keypoint per point, the one reprojecting closest)."""
     pairs = np.unique(np.stack([kps, point_ids], axis=1), axis=0) if len(kps) else \
         np.zeros((0, 2), np.int64)
-    if len(pairs) < max(4, options.abs_pose_min_num_inliers):
+    if len(pairs) < max(4, options.registration.abs_pose_min_num_inliers):
         return False
     kps, point_ids = pairs[:, 0], pairs[:, 1]
     try:
         result = solvers.absolute_pose(
             model.rays[image_id][kps], model.xyz[point_ids],
-            max_error=options.abs_pose_max_error_px / model.focal(image_id),
-            min_num_inliers=options.abs_pose_min_num_inliers, seed=options.seed)
+            max_error=options.registration.abs_pose_max_error_px / model.focal(image_id),
+            min_num_inliers=options.registration.abs_pose_min_num_inliers, seed=options.seed)
     except solvers.EstimationError:
         return False
-    if result.num_inliers < options.abs_pose_min_inlier_ratio * len(np.unique(kps)):
+    if result.num_inliers < options.registration.abs_pose_min_inlier_ratio * len(np.unique(kps)):
         return False
     model.register(image_id, result.cam_from_world)
     kps, point_ids = kps[result.inlier_mask], point_ids[result.inlier_mask]
@@ -73,6 +73,6 @@ def register_image(model: Model, image_id: int, kps: np.ndarray, point_ids: np.n
     for i in np.argsort(errors, kind="stable"):
         kp, point_id = int(kps[i]), int(point_ids[i])
         if model.point_of[image_id][kp] < 0 and image_id not in model.tracks[point_id] \
-                and errors[i] <= options.abs_pose_max_error_px:
+                and errors[i] <= options.registration.abs_pose_max_error_px:
             model.add_observation(point_id, image_id, kp)
     return True

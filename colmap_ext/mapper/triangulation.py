@@ -43,7 +43,7 @@ def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple
         return 0
     kps, point_ids = np.array(kps), np.array(point_ids)
     errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-    ok = errors <= options.max_reproj_error_px
+    ok = errors <= options.triangulation.max_reproj_error_px
     kps, point_ids, errors = kps[ok], point_ids[ok], errors[ok]
     added = 0
     for i in np.argsort(errors, kind="stable"):
@@ -93,7 +93,7 @@ def triangulate_tracks(model: Model, tracks: list[dict[int, int]],
             rays.append(model.rays[image_id][kp])
     return solvers.triangulate_tracks([model.poses[i] for i in image_ids], np.array(views),
                                       np.array(points), np.array(rays), num_points=len(tracks),
-                                      min_angle_deg=options.min_tri_angle_deg)
+                                      min_angle_deg=options.triangulation.min_tri_angle_deg)
 
 
 def _reprojection_ok(model: Model, tracks: list[dict[int, int]], xyz: np.ndarray,
@@ -109,6 +109,6 @@ def _reprojection_ok(model: Model, tracks: list[dict[int, int]], xyz: np.ndarray
     for image_id, (ps, kps) in by_image.items():
         ps = np.array(ps)
         errors = model.reprojection_errors(image_id, np.array(kps), np.nan_to_num(xyz[ps]))
-        bad = ps[errors > options.max_reproj_error_px]
+        bad = ps[errors > options.triangulation.max_reproj_error_px]
         ok[bad] = False
     return ok

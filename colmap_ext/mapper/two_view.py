@@ -23,7 +23,7 @@ def verified_matches(model: Model, options: MapperOptions,
     if db.verified_matches:
         return {pair: m for pair, m in db.verified_matches.items()
                 if pair[0] in wanted and pair[1] in wanted
-                and len(m) >= options.two_view_min_num_inliers}
+                and len(m) >= options.two_view.min_num_inliers}
     pairs = {pair: m for pair, m in db.raw_matches.items()
              if pair[0] in wanted and pair[1] in wanted}
     verified: dict[Pair, np.ndarray] = {}
@@ -38,13 +38,13 @@ def verified_matches(model: Model, options: MapperOptions,
 def verify_pair(model: Model, id1: int, id2: int, matches: np.ndarray,
                 options: MapperOptions) -> np.ndarray | None:
     """The matches consistent with one calibrated relative pose, or None."""
-    if len(matches) < max(5, options.two_view_min_num_inliers):
+    if len(matches) < max(5, options.two_view.min_num_inliers):
         return None
-    max_error = options.two_view_max_error_px / (0.5 * (model.focal(id1) + model.focal(id2)))
+    max_error = options.two_view.max_error_px / (0.5 * (model.focal(id1) + model.focal(id2)))
     try:
         result = solvers.relative_pose(
             model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
-            max_error=max_error, min_num_inliers=options.two_view_min_num_inliers,
+            max_error=max_error, min_num_inliers=options.two_view.min_num_inliers,
             seed=options.seed)
     except solvers.EstimationError:
         return None
