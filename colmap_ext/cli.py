@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from typing import NoReturn
 
 from colmap_ext import __version__
 from colmap_ext.errors import UserError
@@ -29,11 +30,19 @@ COMMANDS: dict[str, tuple[str, str]] = {
 }
 
 
+class ArgumentParser(argparse.ArgumentParser):
+    """argparse's parser with COLMAP's kind of error: one line and a non-zero exit (2),
+    instead of the usage block and then the error."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} -h')\n")
+
+
 def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
     """The parser; only the subcommand named in `argv` (all of them when `argv` is None)
     is imported and given its flags, so a command does not pay for the others' imports."""
     named = [a for a in argv if a in COMMANDS][:1] if argv is not None else list(COMMANDS)
-    parser = argparse.ArgumentParser(
+    parser = ArgumentParser(
         prog="colmap-ext",
         description="Camera poses for calibrated cameras, as a drop-in for `colmap mapper`.",
     )
@@ -44,7 +53,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
         if name in named:
             module = importlib.import_module(module_name)
             module.add_arguments(sub)
-            sub.set_defaults(_module=module)
+            sub.set_defaults(_module=module, _parser=sub)
     return parser
 
 
@@ -52,11 +61,16 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     try:
         parser = build_parser(argv)  # imports the subcommand: Ctrl-C may come that early
-        args = parser.parse_args(argv)
+        args, unknown = parser.parse_known_args(argv)
         if args.command is None:
+            if unknown:
+                parser.error(f"unrecognized arguments: {' '.join(unknown)}")
             parser.print_help()
             return 0
-        kwargs = {k: v for k, v in vars(args).items() if k not in ("command", "_module")}
+        if unknown:  # said by the subcommand, whose -h lists what it takes
+            args._parser.error(f"unrecognized arguments: {' '.join(unknown)}")
+        kwargs = {k: v for k, v in vars(args).items()
+                  if k not in ("command", "_module", "_parser")}
         # COLMAP's log lines go to stderr as before, but not also to files in /tmp (glog's
         # default in pycolmap), which every run would leave behind.
         import pycolmap  # not at the top: loaded before zlib, pycolmap breaks every PNG write

@@ -4,10 +4,12 @@ into place, so an interrupted run never leaves a half-written model where one st
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import shutil
 import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pycolmap
@@ -33,6 +35,21 @@ def check_output_path(output_path: str | Path, overwrite: bool) -> Path:
     except OSError as exc:
         raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
     return output_path
+
+
+@contextlib.contextmanager
+def output_folder(output_path: str | Path, overwrite: bool) -> Iterator[Path]:
+    """check_output_path, and a folder it had to create removed again if the work inside
+    fails before writing anything to it."""
+    existed = Path(output_path).exists()
+    output_path = check_output_path(output_path, overwrite)
+    try:
+        yield output_path
+    except BaseException:
+        if not existed:
+            with contextlib.suppress(OSError):
+                output_path.rmdir()  # only when empty
+        raise
 
 
 def read_model(path: str | Path) -> pycolmap.Reconstruction:

@@ -1042,8 +1042,9 @@ def check(case: Case, env: Env, result: subprocess.CompletedProcess, before: dic
     lines = message_lines(result.stderr)
     if case.code == 0:
         assert case.message in result.stdout, said
-    elif case.code == 2:  # argparse: usage, then the error
-        assert lines and lines[-1].startswith("colmap-ext ") and case.message in lines[-1], said
+    elif case.code == 2:  # a command-line error: one line, as COLMAP's
+        assert len(lines) == 1, f"expected one line on stderr\n{said}"
+        assert lines[0].startswith("colmap-ext ") and case.message in lines[0], said
     else:
         assert len(lines) == 1, f"expected one line on stderr\n{said}"
         assert lines[0].startswith("colmap-ext: "), said

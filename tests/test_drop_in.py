@@ -4,6 +4,8 @@ real COLMAP 3.8 clients on templeSparseRing (skipped without the `colmap` binary
 
 from __future__ import annotations
 
+import copy
+import dataclasses
 import hashlib
 import logging
 import re
@@ -12,12 +14,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 import pytest
 
 from colmap_ext.mapper import cli
 from colmap_ext.mapper.flags import FLAGS, BY_NAME, get_field, pycolmap_options, read_project
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.evaluate import evaluate
+from colmap_ext.ground_truth import GroundTruth, read_ground_truth
+from colmap_ext.mapper.options import MapperOptions, OptionError
 
 CLI = [sys.executable, "-m", "colmap_ext", "mapper"]
 TEMPLE_CAMERA = "1520.4,1525.9,302.32,246.87"
@@ -138,8 +143,10 @@ def test_bad_project_file_is_one_line_and_writes_nothing(tmp_path, body, message
 def test_unknown_flag_is_refused_and_help_lists_every_option_with_its_default(tmp_path):
     result = run_cli("--database_path", "db", "--image_path", ".", "--output_path",
                      tmp_path / "out", "--Mapper.no_such_option", "1")
-    assert result.returncode != 0
-    assert "unrecognized arguments: --Mapper.no_such_option 1" in result.stderr
+    assert result.returncode == 2
+    assert result.stderr.strip().splitlines() == [
+        "colmap-ext mapper: error: unrecognized arguments: --Mapper.no_such_option 1 "
+        "(see 'colmap-ext mapper -h')"]
     assert not (tmp_path / "out").exists()
     help_text = " ".join(run_cli("-h").stdout.split())
     for flag in FLAGS:
@@ -230,8 +237,10 @@ def test_colmap_client_project_file(colmap_database, tmp_path):
     assert result.returncode == 0, result.stderr
     assert sha256(database) == before
     assert check_model(tmp_path / "sparse", result.stdout, tmp_path) == 16
-    # ba_refine_focal_length=true there: named, with the reason, once
-    assert result.stderr.count("--Mapper.ba_refine_focal_length 1: not applicable") == 1
+    # ba_refine_focal_length=true and ba_refine_extra_params=true there, as COLMAP's
+    # defaults: applied, as a user who asks for them, and said once
+    assert result.stderr.count("refining the focal length and extra params in global "
+                               "bundle adjustment, as asked") == 1
 
 
 def test_pycolmap_options_give_the_cli_model(colmap_database, cli_run, tmp_path):
@@ -249,3 +258,201 @@ def test_pycolmap_options_give_the_cli_model(colmap_database, cli_run, tmp_path)
     assert sorted(reconstructions) == [0]
     for name in ("cameras.bin", "images.bin", "points3D.bin"):
         assert (tmp_path / "0" / name).read_bytes() == (cli_run[0] / "0" / name).read_bytes()
+
+
+def test_colmap_client_continues_a_model(colmap_database, cli_run, real_data, tmp_path):
+    """Half the images with --image_list_path, the rest through --input_path: one model of
+    all 16, within 0.05 deg of the single run, the input model's files unchanged."""
+    database, images = colmap_database
+    names = sorted(p.name for p in images.glob("*.png"))
+    (tmp_path / "half.txt").write_text("\n".join(names[:8]) + "\n")
+    half, full = tmp_path / "half", tmp_path / "full"
+    result = run_cli("--database_path", database, "--image_path", images, "--output_path", half,
+                     "--image_list_path", tmp_path / "half.txt", "--seed", "0")
+    assert result.returncode == 0, result.stderr
+    before = folder_digest(half / "0")
+    result = run_cli("--database_path", database, "--image_path", images, "--output_path", full,
+                     "--input_path", half / "0", "--seed", "0")
+    assert result.returncode == 0, result.stderr
+    assert folder_digest(half / "0") == before, "the input model was written"
+    assert check_model(full, result.stdout, tmp_path) == 16
+    truth = read_ground_truth(next((real_data / "templeSparseRing").glob("*_par.txt")))
+    continued = evaluate(pycolmap.Reconstruction(full / "0"), truth)["R_err_max_deg"]
+    single = evaluate(pycolmap.Reconstruction(cli_run[0] / "0"), truth)["R_err_max_deg"]
+    assert continued < single + 0.05, (continued, single)
+
+
+# ---------------------------------------------------------------- continuing a model
+
+
+def folder_digest(folder: Path) -> dict[str, str]:
+    return {p.name: sha256(p) for p in sorted(folder.iterdir())}
+
+
+def map_ring(folder: Path, output: Path, *args: str | Path) -> subprocess.CompletedProcess:
+    result = run_cli("--database_path", folder / "database.db", "--image_path",
+                     folder / "images", "--output_path", output, "--seed", "0", *args)
+    assert result.returncode == 0, result.stderr
+    return result
+
+
+@pytest.fixture(scope="module")
+def half_ring(synthetic_ring, tmp_path_factory) -> Path:
+    """The first 6 images of the ring mapped alone: the model to continue."""
+    folder, scene = synthetic_ring
+    root = tmp_path_factory.mktemp("half_ring")
+    (root / "half.txt").write_text("\n".join(scene.image_names[:6]) + "\n")
+    map_ring(folder, root / "sparse", "--image_list_path", root / "half.txt")
+    assert pycolmap.Reconstruction(root / "sparse" / "0").num_reg_images() == 6
+    return root / "sparse" / "0"
+
+
+def ring_errors(model: Path, scene) -> dict:
+    truth = GroundTruth(dict(zip(scene.image_names, scene.cams_from_world)), {})
+    return evaluate(pycolmap.Reconstruction(model), truth)
+
+
+@pytest.mark.parametrize("fix", [False, True])
+def test_input_path_registers_the_other_images_into_the_model(synthetic_ring, half_ring,
+                                                              tmp_path, fix):
+    """The rest of the ring joins the given model: all 12 images in one model, as accurate
+    as a single run; with fix_existing_images, the given poses are kept exactly. The input
+    model and the database are not written."""
+    folder, scene = synthetic_ring
+    before = folder_digest(half_ring), sha256(folder / "database.db")
+    map_ring(folder, tmp_path / "full", "--input_path", half_ring,
+             "--Mapper.fix_existing_images", str(int(fix)))
+    assert (folder_digest(half_ring), sha256(folder / "database.db")) == before
+    assert sorted(p.name for p in (tmp_path / "full").iterdir()) == ["0", "mapper_summary.json"]
+    continued = ring_errors(tmp_path / "full" / "0", scene)
+    assert continued["num_registered"] == 12
+    map_ring(folder, tmp_path / "single")
+    single = ring_errors(tmp_path / "single" / "0", scene)
+    assert continued["R_err_max_deg"] < single["R_err_max_deg"] + 0.05
+    given = pycolmap.Reconstruction(half_ring)
+    result = pycolmap.Reconstruction(tmp_path / "full" / "0")
+    by_name = {image.name: image for image in result.images.values()}
+    moved = max(np.abs(by_name[image.name].cam_from_world().matrix()
+                       - image.cam_from_world().matrix()).max()
+                for image in given.images.values())
+    if fix:
+        assert moved == 0.0
+    else:
+        assert 0.0 < moved < 0.05  # refined by the adjustments, not replaced
+
+
+def _corrupt(model: Path, root: Path) -> Path:
+    copy = root / "corrupt"
+    shutil.copytree(model, copy)
+    data = (copy / "images.bin").read_bytes()
+    (copy / "images.bin").write_bytes(data[:len(data) // 2])
+    return copy
+
+
+def _renamed(model: Path, root: Path) -> Path:
+    reconstruction = pycolmap.Reconstruction(model)
+    image = reconstruction.images[min(reconstruction.reg_image_ids())]
+    image.name = "not_in_the_database.png"
+    reconstruction.write_text(root)
+    return root
+
+
+def _other_keypoints(model: Path, root: Path) -> Path:
+    reconstruction = pycolmap.Reconstruction(model)
+    image = reconstruction.images[min(reconstruction.reg_image_ids())]
+    image.points2D[int(np.flatnonzero([p.has_point3D() for p in image.points2D])[0])].xy += 5
+    reconstruction.write_binary(root)
+    return root
+
+
+@pytest.mark.parametrize("make_input, message", [
+    (lambda model, root: root / "missing", "no COLMAP model in {input}: expected cameras, "
+                                           "images and points3D (.bin or .txt)"),
+    (_corrupt, "cannot read the model in {input}: "),
+    (_renamed, "1 images of the input model are not in the database: not_in_the_database.png"),
+    (_other_keypoints, "image ring0000.png of the input model has other keypoints than the "
+                       "database's: the model was made from another database"),
+    (lambda model, root: root.parent / "out" / "0", "--input_path {input} is a model of "
+                                                     "--output_path, which the result would "
+                                                     "replace"),
+], ids=["missing", "corrupt", "not_in_database", "other_database", "inside_output"])
+def test_bad_input_model_is_one_line_and_writes_nothing(synthetic_ring, half_ring, tmp_path,
+                                                        make_input, message):
+    folder, _ = synthetic_ring
+    (tmp_path / "input").mkdir()
+    input_path = make_input(half_ring, tmp_path / "input")
+    if input_path.parent.name == "out":  # the model the output would replace
+        shutil.copytree(half_ring, input_path)
+    watched = {p: sha256(p) for p in tmp_path.rglob("*") if p.is_file()}
+    result = run_cli("--database_path", folder / "database.db", "--image_path",
+                     folder / "images", "--output_path", tmp_path / "out", "--input_path",
+                     input_path, "--overwrite")
+    assert result.returncode == 1, result.stderr
+    lines = result.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "colmap-ext: error: " + message.format(input=input_path.resolve()
+                                               if "output" in message else input_path)), lines
+    assert {p: sha256(p) for p in tmp_path.rglob("*") if p.is_file()} == watched
+    if input_path.parent.name != "out":
+        assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------- options that act
+
+
+def test_refining_the_focal_length_on_request(synthetic_ring, tmp_path):
+    """A database whose focal length is 1.5 % off: held constant by default (the camera is
+    written as given), refined towards the truth with --Mapper.ba_refine_focal_length 1."""
+    folder, scene = synthetic_ring
+    shutil.copytree(folder, tmp_path / "ring")
+    true_focal = scene.camera.params[:2]  # OPENCV: fx, fy, cx, cy, k1, k2, p1, p2
+    with pycolmap.Database.open(tmp_path / "ring" / "database.db") as db:
+        camera = db.read_all_cameras()[0]
+        camera.params = [*(true_focal * 1.015), *camera.params[2:]]
+        db.update_camera(camera)
+    given = camera.params.copy()
+    map_ring(tmp_path / "ring", tmp_path / "constant")
+    constant = pycolmap.Reconstruction(tmp_path / "constant" / "0").cameras[1]
+    assert np.array_equal(constant.params, given)
+    result = map_ring(tmp_path / "ring", tmp_path / "refined",
+                      "--Mapper.ba_refine_focal_length", "1")
+    assert "refining the focal length" in result.stderr
+    refined = pycolmap.Reconstruction(tmp_path / "refined" / "0").cameras[1]
+    assert np.all(np.abs(refined.params[:2] - true_focal) < 0.1 * np.abs(given[:2] - true_focal))
+    assert np.array_equal(refined.params[2:], given[2:])  # only what was asked for
+    errors = ring_errors(tmp_path / "refined" / "0", scene)
+    assert errors["num_registered"] == 12 and errors["R_err_max_deg"] < 0.2
+
+
+def test_snapshots_every_n_registered_images(synthetic_ring, tmp_path):
+    folder, _ = synthetic_ring
+    map_ring(folder, tmp_path / "out", "--Mapper.snapshot_path", tmp_path / "snapshots",
+             "--Mapper.snapshot_frames_freq", "4")
+    snapshots = sorted((tmp_path / "snapshots").iterdir())
+    assert [pycolmap.Reconstruction(s).num_reg_images() for s in snapshots] == [4, 8, 12]
+
+
+def test_every_option_of_every_component_is_checked():
+    """check() refuses a value out of range for each field that has one, naming the field."""
+    options = MapperOptions()
+    for component_name, component in options.components().items():
+        for field in dataclasses.fields(component):
+            value = getattr(component, field.name)
+            if isinstance(value, bool):
+                continue
+            bad = "no such choice" if isinstance(value, str) else -10**6
+            broken = copy.deepcopy(options)
+            setattr(getattr(broken, component_name), field.name, bad)
+            with pytest.raises(OptionError, match=rf"^{type(component).__name__}\.{field.name} "
+                                                  r"must be .*, got "):
+                broken.check()
+
+
+def test_option_out_of_range_names_the_flag_given(tmp_path):
+    result = run_cli("--database_path", tmp_path / "db.db", "--image_path", tmp_path,
+                     "--output_path", tmp_path / "out", "--Mapper.min_num_matches", "2")
+    assert result.returncode == 1
+    assert result.stderr.strip().splitlines() == [
+        "colmap-ext: error: --Mapper.min_num_matches 2: TwoViewOptions.min_num_inliers must "
+        "be >= 5, got 2"]
+    assert not (tmp_path / "out").exists()

@@ -10,7 +10,6 @@ import subprocess
 import sys
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pycolmap
 import pytest
@@ -26,8 +25,6 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.pipeline import StageTimer, export, merge_models, reconstruct
 from colmap_ext.mapper.pruning import rotation_uncertainty
 from colmap_ext.mapper.two_view import pair_graph
-from colmap_ext.synthetic.database import scene_points, write_synthetic_database
-from colmap_ext.synthetic.scene import ring_scene
 
 # Bounds on the 12-view synthetic ring for the tests added with them (orders, image
 # lists, losses, merging): worst measured over seeds 0-4, R_err max 0.070 deg and
@@ -50,16 +47,9 @@ def true_centres(scene) -> dict[str, np.ndarray]:
 
 
 @pytest.fixture(scope="module")
-def synthetic(tmp_path_factory):
+def synthetic(synthetic_ring):
     """A 12-view ring database (0.5 px noise, 20 % wrong matches) and its truth."""
-    folder = tmp_path_factory.mktemp("synthetic")
-    scene = ring_scene(num_images=12, seed=3)
-    write_synthetic_database(folder / "database.db", scene, scene_points(scene, 1500, seed=3),
-                             noise_px=0.5, outlier_ratio=0.2, seed=3)
-    (folder / "images").mkdir()
-    for name in scene.image_names:  # the mapper reads point colours from the images
-        cv2.imwrite(str(folder / "images" / name), np.zeros((8, 8), np.uint8))
-    return folder, scene
+    return synthetic_ring
 
 
 def run_cli(*args: str) -> subprocess.CompletedProcess:

@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from colmap_ext.errors import UserError
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import MapperOptions, OptionError
 
 logger = logging.getLogger(__name__)
 
@@ -299,10 +299,18 @@ def mapper_options(values: dict[str, Any], base: MapperOptions | None = None) ->
         elif value != flag.default:
             logger.warning("colmap-ext: --%s %s: not applicable: %s", flag.name, shown(value),
                            flag.help)
+    refined = [name.removeprefix("refine_").replace("_", " ")
+               for name in ("refine_focal_length", "refine_principal_point", "refine_extra_params")
+               if getattr(options.bundle_adjustment, name)]
+    if refined:
+        logger.warning("colmap-ext: refining the %s in global bundle adjustment, as asked "
+                       "(the method assumes the intrinsics known)", " and ".join(refined))
     try:
         options.check()
-    except ValueError as exc:
-        raise UserError(str(exc)) from None
+    except OptionError as exc:
+        given = [name for name in values if lookup(name).field == exc.path]
+        raise UserError(f"--{lookup(given[0]).name} {shown(values[given[0]])}: {exc}"
+                        if given else str(exc)) from None
     return options
 
 

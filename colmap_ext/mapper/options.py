@@ -17,10 +17,19 @@ ORDERS = ("visibility", "sequence")
 BA_LOSSES = ("cauchy", "soft_l1", "trivial")
 
 
+class OptionError(ValueError):
+    """An option out of its range; `path` names it in MapperOptions ("registration.order")."""
+
+    def __init__(self, path: str, message: str) -> None:
+        super().__init__(message)
+        self.path = path
+
+
 def _require(condition: bool, component: object, name: str, rule: str) -> None:
     if not condition:
         value = getattr(component, name)
-        raise ValueError(f"{type(component).__name__}.{name} must be {rule}, got {value!r}")
+        raise OptionError(name, f"{type(component).__name__}.{name} must be {rule}, "
+                                f"got {value!r}")
 
 
 @dataclass
@@ -237,9 +246,12 @@ class MapperOptions:
                 if hasattr(getattr(self, f.name), "check")}
 
     def check(self) -> None:
-        """ValueError naming the first option out of its range."""
-        for component in self.components().values():
-            component.check()
+        """An OptionError (a ValueError) naming the first option out of its range."""
+        for name, component in self.components().items():
+            try:
+                component.check()
+            except OptionError as exc:
+                raise OptionError(f"{name}.{exc.path}", str(exc)) from None
         _require(self.max_num_models >= 1, self, "max_num_models", ">= 1")
         _require(self.min_model_size >= 0, self, "min_model_size", ">= 0")
         _require(self.snapshot_frames_freq >= 0, self, "snapshot_frames_freq", ">= 0")

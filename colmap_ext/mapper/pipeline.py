@@ -27,7 +27,7 @@ from colmap_ext.mapper.registration import (descriptor_correspondences, register
                                             track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
-from colmap_ext.model_io import check_output_path, read_model, write_json, write_models
+from colmap_ext.model_io import output_folder, read_model, write_json, write_models
 
 
 # Images tried per round before the mapper gives up on growing the model.
@@ -363,23 +363,23 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
     if not image_path.is_dir():
         raise UserError(f"image path not found: {image_path}")
     existing = _read_input_model(input_path, output_path) if input_path else None
-    output_path = check_output_path(output_path, overwrite)
-    timer = StageTimer()
-    start = time.perf_counter()
-    with timer("read database"):
-        db = read_database(database_path)
-    _check_images(db, image_path)
-    reconstructions = reconstruct(db, options, image_names, timer, progress, existing)
-    if not reconstructions:
-        raise UserError("no model could be reconstructed: no image pair gave a relative pose "
-                        "with enough well-triangulated points")
-    with timer("export"):
-        if options.extract_colors:
-            for reconstruction in reconstructions:
-                reconstruction.extract_colors_for_all_images(str(image_path))
-        write_models(reconstructions, output_path, output_type)
-    summary = summarize(reconstructions, timer, time.perf_counter() - start)
-    write_json(summary, output_path / "mapper_summary.json")
+    with output_folder(output_path, overwrite) as output_path:
+        timer = StageTimer()
+        start = time.perf_counter()
+        with timer("read database"):
+            db = read_database(database_path)
+        _check_images(db, image_path)
+        reconstructions = reconstruct(db, options, image_names, timer, progress, existing)
+        if not reconstructions:
+            raise UserError("no model could be reconstructed: no image pair gave a relative pose "
+                            "with enough well-triangulated points")
+        with timer("export"):
+            if options.extract_colors:
+                for reconstruction in reconstructions:
+                    reconstruction.extract_colors_for_all_images(str(image_path))
+            write_models(reconstructions, output_path, output_type)
+        summary = summarize(reconstructions, timer, time.perf_counter() - start)
+        write_json(summary, output_path / "mapper_summary.json")
     return dict(enumerate(reconstructions))
 
 
