@@ -20,7 +20,7 @@ from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper import MapperOptions, pipeline, run
 from colmap_ext.mapper.options import BundleAdjustmentOptions
 from colmap_ext.mapper.cli import main as mapper_cli
-from colmap_ext.mapper.merging import Similarity, find_similarity
+from colmap_ext.mapper.merging import find_similarity
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.pipeline import StageTimer, export, merge_models, reconstruct
 from colmap_ext.mapper.pruning import rotation_uncertainty
@@ -217,22 +217,21 @@ def ring_arcs(db, options, monkeypatch) -> tuple[list[Model], dict]:
     return arcs, matches
 
 
-def move(model: Model, similarity: Similarity) -> None:
+def move(model: Model, similarity: pycolmap.Sim3d) -> None:
     """Apply a similarity to the model's poses and points."""
     for image_id, pose in model.poses.items():
-        model.poses[image_id] = similarity.pose(pose)
+        model.poses[image_id] = similarity.transform_camera_world(pose)
     point_ids = list(model.tracks)
-    model.xyz[point_ids] = similarity.points(model.xyz[point_ids])
+    model.xyz[point_ids] = similarity * model.xyz[point_ids]
 
 
-def true_from_model(model: Model, scene) -> Similarity:
+def true_from_model(model: Model, scene) -> pycolmap.Sim3d:
     """The similarity that puts the model's camera centres best onto the true ones."""
     registered = list(model.poses)
     true = true_centres(scene)
-    sim3d = pycolmap.estimate_sim3d(
+    return pycolmap.estimate_sim3d(
         np.array([model.poses[i].inverse().translation for i in registered]),
         np.array([true[model.db.images[i].name] for i in registered]))
-    return Similarity(sim3d.scale, sim3d.rotation.matrix(), sim3d.translation)
 
 
 def test_merging_recovers_a_known_similarity(synthetic, monkeypatch):
@@ -246,8 +245,8 @@ def test_merging_recovers_a_known_similarity(synthetic, monkeypatch):
     (target, source), matches = ring_arcs(db, options, monkeypatch)
     for model in (target, source):
         move(model, true_from_model(model, scene))
-    applied = Similarity(2.5, pycolmap.Rotation3d(np.array([0.3, -0.5, 0.8])).matrix(),
-                         np.array([4.0, -3.0, 1.0]))
+    applied = pycolmap.Sim3d(2.5, pycolmap.Rotation3d(np.array([0.3, -0.5, 0.8])),
+                             np.array([4.0, -3.0, 1.0]))
     move(source, applied)
 
     found = find_similarity(target, source, pair_graph(db.raw_matches), options)
@@ -255,9 +254,10 @@ def test_merging_recovers_a_known_similarity(synthetic, monkeypatch):
     similarity = found[0]
     # Measured over seeds 0-4: rotation 0.022-0.023 deg off, scale ratio within 0.00013
     # of 1, translation 0.0021 off (ring radius 3).
-    assert rotation_angles_deg((similarity.rotation @ applied.rotation)[None])[0] < 0.07
+    rotation = similarity.rotation.matrix() @ applied.rotation.matrix()
+    assert rotation_angles_deg(rotation[None])[0] < 0.07
     assert similarity.scale * applied.scale == pytest.approx(1, abs=0.0004)
-    expected_translation = -applied.rotation.T @ applied.translation / applied.scale
+    expected_translation = applied.inverse().translation
     assert np.linalg.norm(similarity.translation - expected_translation) < 0.0065
 
     joined = merge_models([target, source], matches, options, StageTimer())

@@ -11,15 +11,6 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 
 
-def essential_matrix(cam2_from_world: pycolmap.Rigid3d,
-                     cam1_from_world: pycolmap.Rigid3d) -> np.ndarray:
-    """E with x2^T E x1 = 0 between two posed cameras (COLMAP's convention)."""
-    cam2_from_cam1 = cam2_from_world * cam1_from_world.inverse()
-    t = cam2_from_cam1.translation
-    skew = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    return skew @ cam2_from_cam1.rotation.matrix()
-
-
 def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndarray,
                         options: MapperOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For keypoints `kps` of `image_id`, the best compatible keypoint in `other_id`.
@@ -34,7 +25,8 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
         return empty
     index, angles = model.nearest(image_id, other_id)
     index, angles = index[kps], angles[kps]
-    E = essential_matrix(model.poses[other_id], model.poses[image_id])
+    E = pycolmap.essential_matrix_from_pose(model.poses[other_id] *
+                                            model.poses[image_id].inverse())
     max_error = options.guided_matching.max_epipolar_error_px / model.focal(image_id)
     x1 = np.repeat(model.normalized[image_id][kps], index.shape[1], axis=0)
     errors = sampson_errors(E, x1, model.normalized[other_id][index.ravel()])

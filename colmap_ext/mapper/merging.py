@@ -37,25 +37,6 @@ MIN_CROSS_INLIERS = 6
 
 
 @dataclass(frozen=True)
-class Similarity:
-    """target_from_source: X_target = scale * rotation @ X_source + translation."""
-
-    scale: float
-    rotation: np.ndarray
-    translation: np.ndarray
-
-    def points(self, xyz: np.ndarray) -> np.ndarray:
-        return self.scale * xyz @ self.rotation.T + self.translation
-
-    def pose(self, cam_from_source: pycolmap.Rigid3d) -> pycolmap.Rigid3d:
-        """cam_from_target, the camera's coordinates scaled like the target's."""
-        rotation = cam_from_source.rotation.matrix() @ self.rotation.T
-        return pycolmap.Rigid3d(pycolmap.Rotation3d(rotation),
-                                self.scale * cam_from_source.translation
-                                - rotation @ self.translation)
-
-
-@dataclass(frozen=True)
 class CrossRegistration:
     """An image of one model posed among the other model's points, and what that
     implies for target_from_source: its rotation and the image's centre in both frames."""
@@ -74,7 +55,7 @@ class CrossRegistration:
 
 def find_similarity(target: Model, source: Model, raw_graph: dict[int, dict[int, np.ndarray]],
                     options: MapperOptions
-                    ) -> tuple[Similarity, tuple[CrossRegistration, CrossRegistration]] | None:
+                    ) -> tuple[pycolmap.Sim3d, tuple[CrossRegistration, CrossRegistration]] | None:
     """target_from_source from the two consistent cross-registrations with most inliers
     together, if they have at least `abs_pose_min_num_inliers`; else None."""
     registrations = [r for image_model, points_model in ((source, target), (target, source))
@@ -141,8 +122,8 @@ def _descriptor_correspondences(image_model: Model, image_id: int, points_model:
 
 
 def similarity_from(a: CrossRegistration, b: CrossRegistration,
-                    max_angle_deg: float) -> Similarity | None:
-    """The similarity two cross-registrations imply, or None when they disagree: their
+                    max_angle_deg: float) -> pycolmap.Sim3d | None:
+    """The similarity (target_from_source) two cross-registrations imply, or None when they disagree: their
     rotations, or the direction between their centres, differ by more than
     `max_angle_deg`. Rotation: the mean of both; scale: the ratio of the centres'
     distances; translation: the mean of what each centre implies."""
@@ -158,7 +139,7 @@ def similarity_from(a: CrossRegistration, b: CrossRegistration,
     scale = lengths[0] / lengths[1]
     translation = np.mean([r.centre_target - scale * rotation @ r.centre_source for r in (a, b)],
                           axis=0)
-    return Similarity(scale, rotation, translation)
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation)
 
 
 def _mean_rotation(*rotations: np.ndarray) -> np.ndarray:
@@ -167,7 +148,7 @@ def _mean_rotation(*rotations: np.ndarray) -> np.ndarray:
     return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
-def join(target: Model, source: Model, similarity: Similarity,
+def join(target: Model, source: Model, similarity: pycolmap.Sim3d,
          links: tuple[CrossRegistration, ...]) -> Model:
     """One model of both, in the target's frame: the source's poses and points moved by
     `similarity`, and each cross-registration's inliers observing the same point."""
@@ -177,9 +158,10 @@ def join(target: Model, source: Model, similarity: Similarity,
     for image_id in target.registration_order:
         model.register(image_id, target.poses[image_id])
     for image_id in source.registration_order:
-        model.register(image_id, similarity.pose(source.poses[image_id]))
+        model.register(image_id,
+                       similarity.transform_camera_world(source.poses[image_id]))
     target_ids = _copy_points(model, target, lambda xyz: xyz)
-    source_ids = _copy_points(model, source, similarity.points)
+    source_ids = _copy_points(model, source, lambda xyz: similarity * xyz)
     for link in links:
         new_ids = source_ids if link.image_id in target.poses else target_ids
         for kp, point_id in zip(link.kps.tolist(), link.point_ids.tolist()):
