@@ -30,7 +30,7 @@ from colmap_ext.ground_truth import read_ground_truth
 from colmap_ext.mapper.options import BA_LOSSES, BundleAdjustmentOptions, MapperOptions
 from colmap_ext.mapper.pipeline import StageTimer, reconstruct
 
-STAGES = ("registration", "triangulation", "bundle adjustment", "pruning")
+STAGES = ("registration", "triangulation", "bundle adjustment", "filtering")
 
 
 def profile_ours(database: Path, ground_truth: Path, loss: str, seed: int) -> dict:
@@ -64,7 +64,7 @@ def rows_for(dataset: str, colmap_s: float, runs: dict[str, dict]) -> list[list[
 
 HEADINGS = ["data set", "loss", "registered", "R_err max [deg]", "ours [s]",
             "ours / COLMAP inc.", "registration [s]", "triangulation [s]",
-            "bundle adj. [s]", "pruning [s]", "other [s]", "Ceres solves / iterations"]
+            "bundle adj. [s]", "filtering [s]", "other [s]", "Ceres solves / iterations"]
 
 
 def section(rows: list[list[str]], notes: list[str], seed: int, elapsed_s: float) -> str:
@@ -78,7 +78,7 @@ def section(rows: list[list[str]], notes: list[str], seed: int, elapsed_s: float
         "(database read and model writing excluded); *COLMAP inc.*: its incremental mapper's "
         "mapping call on the same database in the same run. Stages: registration (descriptor "
         "matching to model points, P3P), triangulation (guided matching, new points), bundle "
-        "adjustment (Ceres through pycolmap, with building its problem), pruning; other: "
+        "adjustment (Ceres through pycolmap, with building its problem), filtering; other: "
         "two-view geometry, initial pair, merging, export.",
         "- loss: the robust loss of every bundle adjustment (`MapperOptions.ba_loss`); "
         "cauchy is the default.",

@@ -23,7 +23,7 @@ from colmap_ext.mapper.cli import main as mapper_cli
 from colmap_ext.mapper.merging import find_similarity
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.pipeline import StageTimer, export, merge_models, reconstruct
-from colmap_ext.mapper.pruning import rotation_uncertainty
+from colmap_ext.mapper.filtering import rotation_uncertainty
 from colmap_ext.mapper.two_view import pair_graph
 
 # Bounds on the 12-view synthetic ring for the tests added with them (orders, image

@@ -15,7 +15,7 @@ from colmap_ext.mapper import MapperOptions, descriptors
 from colmap_ext.mapper.descriptors import NearestDescriptors, nearest_descriptors, unit_descriptors
 from colmap_ext.mapper.guided_matching import compatible_features
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.pruning import has_triangulation_angle
+from colmap_ext.mapper.filtering import has_triangulation_angle
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
 from colmap_ext.synthetic.scene import ring_scene
 

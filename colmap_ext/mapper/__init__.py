@@ -8,7 +8,7 @@ One module per step of the method (SPEC.md, steps 4 to 7):
 - `guided_matching`: visually and geometrically compatible features in registered images
 - `triangulation`: new points and longer tracks from those features
 - `bundle_adjustment`: local and global refinement through pycolmap
-- `pruning`: dropping incompatible observations and weakly supported points
+- `filtering`: dropping incompatible observations, weakly supported points and ill-posed images
 - `merging`: joining models that fell apart, by a similarity two images agree on
 - `pipeline`: the loop that runs them, and `run()`
 """

@@ -86,7 +86,7 @@ _BOUNDS = ("the intrinsics are known; refined ones (--Mapper.ba_refine_*) are no
 _TRIANGULATOR = ("points come from the method's guided matching (features compatible in at "
                  "least three images), not from COLMAP's triangulator")
 _BA_SCHEDULE = ("global adjustment runs whenever the model grows by --Mapper.ba_global_frames_"
-                "ratio, each adjustment followed by pruning")
+                "ratio, each adjustment followed by filtering")
 _GPU = "bundle adjustment runs on the CPU (pycolmap's Ceres)"
 _NO_PRIORS = "position priors are not used"
 

@@ -128,7 +128,7 @@ class TriangulationOptions:
 @dataclass
 class FilteringOptions:
     """Dropping observations, points and images the model no longer supports
-    (paper, step 4e; pruning.py)."""
+    (paper, step 4e; filtering.py)."""
 
     # An observation is kept while it reprojects within this error (px).
     max_reproj_error_px: float = 3.0
@@ -139,7 +139,7 @@ class FilteringOptions:
     # ... once this many images registered after its creation could observe it.
     track_grace_registrations: int = 3
     # A finished model keeps an image whose points fix its rotation to within this many
-    # times the keypoint noise (pruning.rotation_uncertainty).
+    # times the keypoint noise (filtering.rotation_uncertainty).
     max_rotation_uncertainty: float = 15.0
 
     def check(self) -> None:

@@ -1,5 +1,5 @@
 """The incremental loop and `run()`: initial pair, then register, triangulate,
-adjust and prune image after image; several models when the images fall apart,
+adjust and filter image after image; several models when the images fall apart,
 joined again where they can be (merging.py)."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.pruning import deregister_ill_conditioned, prune
+from colmap_ext.mapper.filtering import filter_images, filter_points
 from colmap_ext.mapper.registration import (descriptor_correspondences, register_image,
                                             track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
@@ -196,8 +196,8 @@ class IncrementalMapper:
             return
         local = [image_id] + self._neighbours(image_id, options.bundle_adjustment.local_num_images)
         self._bundle_adjust(local, options.bundle_adjustment.local_max_iterations)
-        with self.timer("pruning"):
-            prune(self.model, local, options)
+        with self.timer("filtering"):
+            filter_points(self.model, local, options)
 
     def _global_adjustment(self, final: bool = False) -> None:
         model, options = self.model, self.options
@@ -205,8 +205,8 @@ class IncrementalMapper:
         for _ in range(2 if final else 1):
             self._bundle_adjust(registered, options.bundle_adjustment.global_max_iterations,
                                 refine_intrinsics=True)
-            with self.timer("pruning"):
-                prune(model, registered, options, final=final)
+            with self.timer("filtering"):
+                filter_points(model, registered, options, final=final)
         self.num_images_at_global_ba = model.num_registered
 
     def _bundle_adjust(self, image_ids: list[int], max_iterations: int,
@@ -256,9 +256,9 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     finally:
         bar.close()
     models = merge_models(models, all_matches, options, timer)
-    with timer("pruning"):
+    with timer("filtering"):
         for model in models:
-            deregister_ill_conditioned(model, options)
+            filter_images(model, options)
     models = [m for m in models if m.num_registered >= options.min_model_size]
     with timer("export"):
         reconstructions = [export(model) for model in models]

@@ -1,6 +1,7 @@
-"""Pruning (paper, step 4e): observations no longer geometrically compatible with
-their point go, then points without enough support or triangulation angle; at the
-end, images whose points leave their rotation poorly determined."""
+"""Filtering (paper, step 4e, "pruning"): observations no longer geometrically
+compatible with their point go, then points without enough support or triangulation
+angle (`filter_points`); at the end, images whose points leave their rotation poorly
+determined (`filter_images`)."""
 
 from __future__ import annotations
 
@@ -11,9 +12,9 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 
 
-def prune(model: Model, image_ids: list[int], options: MapperOptions,
-          final: bool = False) -> tuple[int, int]:
-    """Prune the observations in `image_ids` and the points they see. Before the end
+def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
+                  final: bool = False) -> tuple[int, int]:
+    """Filter the observations in `image_ids` and the points they see. Before the end
     (`final` False), points younger than the grace period may keep two-view tracks.
     Returns (observations removed, points removed)."""
     removed_observations = 0
@@ -41,7 +42,9 @@ def _supported(model: Model, point_id: int, wide_enough: bool, options: MapperOp
     if len(track) < 2:
         return False
     age = model.num_registered - model.born[point_id]
-    if len(track) < options.filtering.min_track_length and (final or age >= options.filtering.track_grace_registrations):
+    filtering = options.filtering
+    if len(track) < filtering.min_track_length and \
+            (final or age >= filtering.track_grace_registrations):
         return False
     return bool(wide_enough)
 
@@ -84,7 +87,7 @@ def has_triangulation_angle(model: Model, point_ids: list[int], min_angle_deg: f
     return wide
 
 
-def deregister_ill_conditioned(model: Model, options: MapperOptions) -> list[int]:
+def filter_images(model: Model, options: MapperOptions) -> list[int]:
     """Deregister the images whose observed points fix their rotation worse than
     `max_rotation_uncertainty` (see `rotation_uncertainty`); returns their ids.
 
