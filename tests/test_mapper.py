@@ -17,7 +17,7 @@ import pytest
 from colmap_ext.database import read_database
 from colmap_ext.evaluate import align_similarity, evaluate, rotation_angles_deg
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
-from colmap_ext.mapper import MapperOptions, pipeline, run
+from colmap_ext.mapper import MapperOptions, descriptors, pipeline, run
 from colmap_ext.mapper.options import BundleAdjustmentOptions
 from colmap_ext.mapper.cli import main as mapper_cli
 from colmap_ext.mapper.merging import find_similarity
@@ -110,6 +110,26 @@ def test_bundle_adjustment_loss_reaches_ceres(synthetic):
     with pytest.raises(ValueError, match="BundleAdjustmentOptions.loss must be one of "
                                          "cauchy, soft_l1, trivial, got 'huber'"):
         MapperOptions(bundle_adjustment=BundleAdjustmentOptions(loss="huber")).check()
+
+
+def test_synthetic_ring_from_database_matches_alone(synthetic, monkeypatch):
+    """With no exact search allowed (max_search_pairs 0), the guided matching and the
+    registration take their candidates from the database's matches, and the ring is
+    still recovered within the bounds of the tests above."""
+    folder, scene = synthetic
+
+    def no_search(*args, **kwargs):
+        raise AssertionError("an exact descriptor search ran")
+
+    monkeypatch.setattr(descriptors, "nearest_descriptors", no_search)
+    options = MapperOptions(seed=0)
+    options.guided_matching.max_search_pairs = 0
+    reconstructions = reconstruct(read_database(folder / "database.db"), options, progress=False)
+    assert len(reconstructions) == 1
+    report = evaluate(reconstructions[0], ring_truth(scene))
+    assert report["num_registered"] == scene.num_images
+    assert report["R_err_max_deg"] < RING_MAX_R_ERR_DEG
+    assert report["C_err_max"] < RING_MAX_C_ERR
 
 
 def test_cli_writes_text_and_refuses_to_overwrite(synthetic, tmp_path):

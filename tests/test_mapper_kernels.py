@@ -75,6 +75,36 @@ def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
     assert list(store._pairs) == [(0, 3), (0, 1)]
 
 
+def test_pairs_beyond_the_search_budget_take_the_database_matches() -> None:
+    """Above max_search_pairs keypoint pairs, a pair's candidates are its database
+    matches, either way round: the matched keypoint (at the descriptors' true angle) for
+    matched keypoints, none for the others; subsets keep the matches inside them. Below,
+    the exact search."""
+    rng = np.random.default_rng(3)
+    features = {1: random_sift(rng, 30), 2: random_sift(rng, 20)}
+    matches = {(1, 2): np.array([[0, 5], [7, 2], [29, 19]], np.int32)}
+    store = NearestDescriptors(features, k=3, max_bytes=2**30, num_threads=1,
+                               matches=matches, max_search_pairs=30 * 20 - 1)
+    for image_id, other_id, pairs in ((1, 2, matches[(1, 2)]), (2, 1, matches[(1, 2)][:, ::-1])):
+        index, angles = store(image_id, other_id)
+        assert index.shape == angles.shape == (len(features[image_id]), 3)
+        assert (index[pairs[:, 0], 0] == pairs[:, 1]).all()
+        true_angles = np.arccos(np.clip(np.einsum(
+            "ij,ij->i", unit_descriptors(features[image_id][pairs[:, 0]]),
+            unit_descriptors(features[other_id][pairs[:, 1]])), -1, 1))
+        np.testing.assert_allclose(angles[pairs[:, 0], 0], true_angles, atol=1e-5)
+        unmatched = np.setdiff1d(np.arange(len(features[image_id])), pairs[:, 0])
+        assert np.isinf(angles[unmatched]).all() and np.isinf(angles[:, 1:]).all()
+    subset = np.array([2, 19, 11])  # holds image 2's keypoints matched to 7 and 29
+    (sub_index, sub_angles), = store.search_subsets(1, [(2, subset)], k=2)
+    assert sub_index.shape == (30, 2)
+    assert (sub_index[[7, 29], 0] == [0, 1]).all()
+    assert np.isfinite(sub_angles[:, 0]).sum() == 2 and np.isinf(sub_angles[:, 1]).all()
+    searched = NearestDescriptors(features, k=3, max_bytes=2**30, num_threads=1,
+                                  matches=matches, max_search_pairs=30 * 20)
+    assert (searched(1, 2)[0] == brute_force_nearest(features[1], features[2], 3)[0]).all()
+
+
 def brute_force_widest_angle_deg(model, point_id: int) -> float:
     rays = np.array([model.xyz[point_id] - model.centre(i) for i in model.tracks[point_id]])
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)

@@ -1,6 +1,7 @@
 """Nearest SIFT descriptors between two images: exact, by blocks of cosines, so
 memory stays bounded whatever the keypoint counts; and a per-pair store of them for
-guided matching, which asks for the same pairs again."""
+guided matching, which asks for the same pairs again. Where an exact search would
+compare too many keypoint pairs, the database's matches stand in for it."""
 
 from __future__ import annotations
 
@@ -78,14 +79,23 @@ class NearestDescriptors:
     given up first beyond `max_bytes`. A registration's search against a neighbour's
     observed keypoints comes from the same cosines (`search_subsets`). Searches against
     several images run in parallel, one per thread, each with single-threaded BLAS:
-    on a loaded machine that is about twice as fast as BLAS's own threads."""
+    on a loaded machine that is about twice as fast as BLAS's own threads.
+
+    A pair whose exact search would compare more than `max_search_pairs` keypoint pairs
+    (the cost grows with the product of the keypoint counts) takes its candidates from
+    `matches`, the database's matches (image pair -> keypoint index pairs, as
+    DatabaseContents.raw_matches): each matched keypoint's one candidate is the keypoint
+    it was matched to, which the matcher found nearest and distinct (ratio test)."""
 
     def __init__(self, descriptors: dict[int, np.ndarray], k: int, max_bytes: int,
-                 num_threads: int) -> None:
+                 num_threads: int, matches: dict[tuple[int, int], np.ndarray] | None = None,
+                 max_search_pairs: int | None = None) -> None:
         self.descriptors = descriptors
         self.k = k
         self.max_bytes = max_bytes
         self.num_threads = max(1, num_threads)
+        self.matches = matches or {}
+        self.max_search_pairs = max_search_pairs
         self._pairs: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
         self._bytes = 0
 
@@ -120,8 +130,40 @@ class NearestDescriptors:
 
     def _search(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
         """(index, angles) over all of `other_id`, and the k nearest within `subset`."""
-        return nearest_descriptors(self.descriptors[image_id], self.descriptors[other_id],
-                                   self.k, subset, k)
+        queries, database = self.descriptors[image_id], self.descriptors[other_id]
+        if self.max_search_pairs is not None and \
+                len(queries) * len(database) > self.max_search_pairs:
+            return self._matched(image_id, other_id, subset, k)
+        return nearest_descriptors(queries, database, self.k, subset, k)
+
+    def _matched(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
+        """As `_search`, from the database's matches of the pair: one candidate per
+        matched keypoint, then none (index 0 at an infinite angle)."""
+        if (image_id, other_id) in self.matches:
+            pairs = self.matches[(image_id, other_id)]
+        else:
+            pairs = self.matches.get((other_id, image_id), np.zeros((0, 2), np.int64))[:, ::-1]
+        kps, other_kps = pairs[:, 0], pairs[:, 1].astype(np.int64)
+        cosines = np.einsum("ij,ij->i", unit_descriptors(self.descriptors[image_id][kps]),
+                            unit_descriptors(self.descriptors[other_id][other_kps]))
+        num_queries = len(self.descriptors[image_id])
+
+        def candidates(found: np.ndarray, targets: np.ndarray,
+                       columns: int) -> tuple[np.ndarray, np.ndarray]:
+            index = np.zeros((num_queries, columns), np.int64)
+            angles = np.full((num_queries, columns), np.inf, np.float32)
+            if columns:
+                index[kps[found], 0] = targets
+                angles[kps[found], 0] = _angles(cosines[found])
+            return index, angles
+
+        index, angles = candidates(np.ones(len(kps), bool), other_kps, self.k)
+        position = np.full(len(self.descriptors[other_id]), -1, np.int64)
+        position[subset] = np.arange(len(subset))
+        in_subset = position[other_kps] >= 0
+        sub_index, sub_angles = candidates(in_subset, position[other_kps[in_subset]],
+                                           min(k, len(subset)))
+        return index, angles, (sub_index, sub_angles)
 
     def _keep(self, pair: tuple[int, int], index: np.ndarray, angles: np.ndarray) -> None:
         self._pairs[pair] = (index, angles)

@@ -102,6 +102,10 @@ class GuidedMatchingOptions:
     max_descriptor_distance: float = 0.7
     # Largest distance (px) of a compatible feature from the epipolar line.
     max_epipolar_error_px: float = 3.0
+    # An image pair's candidates come from an exact nearest-descriptor search while it
+    # compares at most this many keypoint pairs (keypoints x keypoints; 2**24: 4096 each),
+    # and from the database's matches beyond (descriptors.NearestDescriptors).
+    max_search_pairs: int = 2**24
 
     def check(self) -> None:
         _require(self.num_neighbors >= 1, self, "num_neighbors", ">= 1")
@@ -109,6 +113,7 @@ class GuidedMatchingOptions:
         _require(0 < self.max_descriptor_distance <= 3.15, self, "max_descriptor_distance",
                  "in (0, pi]")
         _require(self.max_epipolar_error_px > 0, self, "max_epipolar_error_px", "> 0")
+        _require(self.max_search_pairs >= 0, self, "max_search_pairs", ">= 0")
 
 
 @dataclass

@@ -231,7 +231,8 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     image_ids = sorted(set(_select_images(db, image_names)) | set(existing_ids.values()))
     nearest = NearestDescriptors({i: db.images[i].descriptors for i in image_ids},
                                  options.guided_matching.num_neighbors, NEAREST_DESCRIPTORS_BYTES,
-                                 options.threads())
+                                 options.threads(), db.raw_matches,
+                                 options.guided_matching.max_search_pairs)
     with timer("two-view geometry"):
         model = Model(db, nearest, image_ids)
         matches = verified_matches(model, options, progress)
