@@ -19,7 +19,8 @@ from colmap_ext.synthetic.scene import ring_scene
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output_path", required=True,
-                        help="folder for the images, ground truth, workspace and report")
+                        help="folder for the images, ground truth, workspace, report.json and "
+                             "the figures errors.png and errors_scene.png")
     parser.add_argument("--num_images", type=int, default=24)
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--overwrite", action="store_true",
@@ -52,5 +53,5 @@ def main(output_path: str, num_images: int = 24, seed: int = 0, overwrite: bool 
     report = evaluate.main(model_path=workspace / "sparse" / "0", ground_truth=truth,
                            output=root / "report.json", plot=root / "errors.png")
     print(f"\nModel: {workspace / 'sparse' / '0'}   report: {root / 'report.json'}   "
-          f"plot: {root / 'errors.png'}")
+          f"plots: {root / 'errors.png'}, {evaluate.scene_plot_path(root / 'errors.png')}")
     return report

@@ -25,7 +25,7 @@ import pycolmap
 from colmap_ext.angles import rotation_angles_deg, vector_angles_deg
 from colmap_ext.errors import UserError
 from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth, read_model
-from colmap_ext.plots import plot_errors
+from colmap_ext.plots import plot_errors, plot_scene
 
 logger = logging.getLogger(__name__)
 
@@ -45,22 +45,34 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="Middlebury *_par.txt, a folder of Strecha *.camera files, or a COLMAP model")
     parser.add_argument("--output", type=Path, help="write the report as JSON to this file")
     parser.add_argument("--plot", type=Path,
-                        help="draw the per-image errors to this image (.png, .pdf, .svg)")
+                        help="draw the per-image errors to this image (.png, .pdf, .svg), and "
+                             "the points and cameras against the ground truth (top and side "
+                             "view) beside it: errors.png gives errors_scene.png")
     parser.add_argument("--format", choices=FORMATS, help="ground-truth format (default: detected)")
 
 
 def main(model_path: str | os.PathLike, ground_truth: str | os.PathLike,
          output: str | os.PathLike | None = None, plot: str | os.PathLike | None = None,
          format: str | None = None) -> dict:
-    """Evaluate the model at `model_path`, print a table, optionally write JSON and a plot."""
+    """Evaluate the model at `model_path`, print a table, optionally write JSON and the plots
+    (`plot` and `scene_plot_path(plot)`)."""
     reconstruction = read_model(Path(model_path))
-    report = evaluate(reconstruction, read_ground_truth(ground_truth, format))
+    truth = read_ground_truth(ground_truth, format)
+    report = evaluate(reconstruction, truth)
     print(format_table(report))
     if output is not None:
         write_json(report, Path(output))
     if plot is not None:
         plot_errors({str(model_path): report}, plot)
+        plot_scene(truth.poses, *aligned_to_ground_truth(reconstruction, truth),
+                   scene_plot_path(plot), title=str(model_path))
     return report
+
+
+def scene_plot_path(plot: str | os.PathLike) -> Path:
+    """Where the scene figure goes beside the errors figure `plot`: errors.png -> errors_scene.png."""
+    plot = Path(plot)
+    return plot.with_name(f"{plot.stem}_scene{plot.suffix}")
 
 
 def evaluate(reconstruction: pycolmap.Reconstruction, ground_truth: GroundTruth) -> dict:
@@ -148,14 +160,40 @@ def pose_errors(gt_poses: list[pycolmap.Rigid3d], est_poses: list[pycolmap.Rigid
 
 
 def align_similarity(source: np.ndarray, target: np.ndarray) -> np.ndarray:
-    """`source` points (n,3) moved by the least-squares similarity onto `target` (Umeyama 1991)."""
+    """`source` points (n,3) moved by the least-squares similarity onto `target`."""
+    return similarity(source, target) * source
+
+
+def similarity(source: np.ndarray, target: np.ndarray) -> pycolmap.Sim3d:
+    """The least-squares similarity taking `source` points (n,3) onto `target` (Umeyama
+    1991). Not pycolmap.estimate_sim3d, which needs 3 points: a 2-view model is evaluated."""
     mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
     xs, xt = source - mu_s, target - mu_t
     u, d, vt = np.linalg.svd(xt.T @ xs)
     signs = np.array([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
     rotation = u @ np.diag(signs) @ vt
     scale = np.sum(d * signs) / np.sum(xs**2)
-    return scale * xs @ rotation.T + mu_t
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), mu_t - scale * rotation @ mu_s)
+
+
+def aligned_to_ground_truth(reconstruction: pycolmap.Reconstruction,
+                            ground_truth: GroundTruth) -> tuple[dict[str, pycolmap.Rigid3d], np.ndarray]:
+    """The registered cameras (cam_from_world by ground-truth name) and the points (n,3, in
+    point id order) of the model, moved into the ground truth's world by the similarity of
+    C_err_aligned, for drawing them over the ground truth.
+
+    The similarity is fitted to world centres rather than to centres relative to the first
+    camera, which moves both sides rigidly and so leaves the fit's residuals unchanged.
+    """
+    matches = match_images(reconstruction, list(ground_truth.poses))
+    names = [name for name in ground_truth.poses if name in matches]
+    gt_from_model = similarity(np.array([matches[name].projection_center() for name in names]),
+                               np.array([ground_truth.poses[name].inverse().translation
+                                         for name in names]))
+    cameras = {name: gt_from_model.transform_camera_world(matches[name].cam_from_world())
+               for name in names}
+    xyz = [point.xyz for _, point in sorted(reconstruction.points3D.items())]  # in id order
+    return cameras, gt_from_model * np.array(xyz).reshape(-1, 3)
 
 
 def _relative_to_first(poses: list[pycolmap.Rigid3d]) -> tuple[np.ndarray, np.ndarray]:

@@ -136,8 +136,8 @@ def _assert_scene_shows(figure, truth: dict, cameras: dict, points: np.ndarray,
     ground-truth centres (cam_from_world `truth`); the aligned estimated centres `cameras`
     (by name), each as far from its ground truth as the report's C_err_aligned says; one
     viewing-direction segment per camera, along its optical axis; an x on exactly the
-    unregistered ground-truth centres; and only points of `points` (each at most once, all
-    of them up to `max_points`, by default the figure's). Returns the figure's data (`_scene_data`) for further checks."""
+    unregistered ground-truth centres; and only points of `points`, all of them up to
+    `max_points` (by default the figure's). Returns the figure's data (`_scene_data`)."""
     from colmap_ext.plots import MAX_SCENE_POINTS, view_frame
 
     view = view_frame(list(truth.values()))

@@ -1,4 +1,4 @@
-"""Evaluation measures on hand-made poses with known answers, the report, the CLI step and the plot."""
+"""Evaluation measures on hand-made poses with known answers, the report, the CLI step and the plots."""
 
 from __future__ import annotations
 
@@ -17,13 +17,15 @@ from PIL import Image
 from colmap_ext.errors import UserError
 from colmap_ext.evaluate import (
     add_arguments,
+    aligned_to_ground_truth,
     evaluate,
     main,
     rotation_angles_deg,
+    scene_plot_path,
     vector_angles_deg,
 )
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth, to_reconstruction
-from colmap_ext.plots import plot_errors
+from colmap_ext.plots import plot_errors, plot_scene, view_frame
 
 REPORT_KEYS = {
     "num_gt_images", "num_registered", "R_err_max_deg", "R_err_median_deg", "T_err_max_deg",
@@ -293,8 +295,9 @@ def test_arguments_match_main() -> None:
 
 
 def test_main_prints_table_writes_json_and_plot(tmp_path: Path, capsys, record_figures,
-                                                assert_figure_shows) -> None:
-    """The plot draws the report's numbers, labelled with the model path."""
+                                                assert_figure_shows, assert_scene_shows) -> None:
+    """The errors plot draws the report's numbers, labelled with the model path; the scene
+    plot beside it the aligned cameras over the ground truth."""
     estimate = {name: pose for name, pose in ring().items() if name != "img04.png"}
     estimate["img03.png"] = rotated_in_place(estimate["img03.png"], rotation([0, 0, 0.01]))
     model_path = write_model(tmp_path / "sparse" / "0", estimate)
@@ -312,10 +315,14 @@ def test_main_prints_table_writes_json_and_plot(tmp_path: Path, capsys, record_f
     assert report["per_image"][4]["C_err"] is None
     with Image.open(plot) as image:
         assert image.format == "PNG" and image.size[0] > 600
-    assert sorted(p.name for p in output.parent.iterdir()) == ["errors.png", "report.json"]
-    [(figure, path)] = figures
-    assert path == plot
+    assert sorted(p.name for p in output.parent.iterdir()) == [
+        "errors.png", "errors_scene.png", "report.json"]
+    [(figure, path), (scene, scene_path)] = figures
+    assert (path, scene_path) == (plot, plot.with_name("errors_scene.png"))
     assert_figure_shows(figure, {str(model_path): report})
+    truth = read_ground_truth(gt_path)
+    cameras, points = aligned_to_ground_truth(pycolmap.Reconstruction(model_path), truth)
+    assert_scene_shows(scene, truth.poses, cameras, points, report)
     assert report["R_err_max_deg"] == pytest.approx(np.degrees(0.01))  # the plot is not all zeros
 
 
@@ -391,6 +398,127 @@ def test_plot_unknown_format_is_a_user_error(tmp_path: Path) -> None:
     with pytest.raises(UserError, match="cannot write"):
         plot_errors({"m": evaluate(model(ring()), ground_truth(ring()))}, tmp_path / "errors.xyz")
     assert list(tmp_path.iterdir()) == []
+
+
+# --- the scene figure ---------------------------------------------------------------------
+
+# Where the scene models' own world lies from the ground truth's (as a mapper's gauge would).
+MODEL_FROM_TRUTH = pycolmap.Sim3d(0.3, rotation([0.4, 1.0, -0.2]), np.array([5.0, 1.0, 2.0]))
+
+
+def scene_model(poses: dict[str, pycolmap.Rigid3d], points: np.ndarray) -> pycolmap.Reconstruction:
+    """A model of `poses` and `points` (n,3), given in ground-truth coordinates, moved into a
+    world of its own by MODEL_FROM_TRUTH."""
+    reconstruction = model(poses)
+    for xyz in points:
+        reconstruction.add_point3D(xyz, pycolmap.Track(), np.zeros(3))
+    reconstruction.transform(MODEL_FROM_TRUTH)
+    return reconstruction
+
+
+def look_at(centre, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> pycolmap.Rigid3d:
+    """cam_from_world of a camera at `centre` looking at `target`, upright for `up`."""
+    z = np.asarray(target, dtype=float) - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, up)
+    x /= np.linalg.norm(x)
+    R = np.array([x, np.cross(z, x), z])
+    return pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ np.asarray(centre, dtype=float))
+
+
+def test_aligned_to_ground_truth_undoes_the_model_gauge() -> None:
+    """A similar copy of the ground truth comes back onto it: cameras and points."""
+    points = np.random.default_rng(0).normal(0, 0.5, (50, 3))
+    cameras, aligned = aligned_to_ground_truth(scene_model(ring(), points), ground_truth(ring()))
+    assert list(cameras) == list(ring())
+    for name, pose in ring().items():
+        np.testing.assert_allclose(cameras[name].matrix(), pose.matrix(), atol=1e-9, err_msg=name)
+    np.testing.assert_allclose(aligned, points, atol=1e-9)
+
+
+def test_scene_plot_shows_drifted_flipped_and_unregistered_cameras(
+        tmp_path: Path, record_figures, assert_scene_shows) -> None:
+    """`evaluate --plot` draws the aligned model over the ground truth: a camera moved off
+    its place lies far from its ground-truth centre, a camera turned round looks the other
+    way, both are named, and the unregistered camera is crossed out."""
+    estimate = ring()
+    del estimate["img02.png"]
+    estimate["img05.png"] = pose_at(estimate["img05.png"].rotation,
+                                    estimate["img05.png"].inverse().translation + [0.6, 0, 0.3])
+    estimate["img06.png"] = rotated_in_place(estimate["img06.png"], rotation([0, np.pi, 0]))
+    points = np.random.default_rng(1).normal(0, 0.5, (300, 3))
+    model_path = tmp_path / "model"
+    model_path.mkdir()
+    scene_model(estimate, points).write(str(model_path))
+    gt_path = write_par(tmp_path / "ring_par.txt", ring())
+    with record_figures() as figures:
+        report = main(model_path, gt_path, plot=tmp_path / "errors.png")
+    [_, (scene, path)] = figures
+    assert path == tmp_path / "errors_scene.png"
+    with Image.open(path) as image:
+        assert image.format == "PNG"
+    truth = read_ground_truth(gt_path)
+    cameras, aligned = aligned_to_ground_truth(pycolmap.Reconstruction(model_path), truth)
+    data = assert_scene_shows(scene, truth.poses, cameras, aligned, report)
+
+    assert len(data["estimated directions"]) == report["num_registered"] == 7
+    names = list(ring())
+    np.testing.assert_allclose(data["unregistered"], data["truth centres"][[2]], atol=1e-9)
+    registered = [names.index(name) for name in cameras]
+    offsets = np.linalg.norm(data["estimated centres"] - data["truth centres"][registered], axis=1)
+    drifted = list(cameras).index("img05.png")
+    assert offsets[drifted] > 0.5 and offsets[drifted] > 2.5 * np.delete(offsets, drifted).max()
+    steps = [segments[:, 1] - segments[:, 0] for segments in
+             (data["estimated directions"], data["truth directions"][registered])]
+    cosines = np.sum(steps[0] * steps[1], axis=1) / np.sum(steps[1] ** 2, axis=1)
+    flipped = list(cameras).index("img06.png")
+    assert cosines[flipped] < -0.99 and np.delete(cosines, flipped).min() > 0.99
+    assert sorted(data["named"]) == ["img05.png", "img06.png"]
+
+
+def test_scene_plot_draws_a_fixed_sample_of_many_points(tmp_path: Path, record_figures,
+                                                        assert_scene_shows) -> None:
+    """Beyond `max_points` the same sample of distinct model points is drawn on every run."""
+    points = np.random.default_rng(2).normal(0, 0.5, (500, 3))
+    report = evaluate(model(ring()), ground_truth(ring()))
+    with record_figures() as figures:
+        for name in ("a.png", "b.png"):
+            plot_scene(ring(), ring(), points, tmp_path / name, max_points=50)
+    drawn = [assert_scene_shows(figure, ring(), ring(), points, report, max_points=50)["points"]
+             for figure, _ in figures]
+    np.testing.assert_array_equal(drawn[0], drawn[1])
+    legend = [text.get_text() for text in figures[0][0].legends[0].get_texts()]
+    assert "sparse points (50 of 500)" in legend
+
+
+def horizontal_ring(count: int = 12, up=(0.0, 0.0, 1.0)) -> list[pycolmap.Rigid3d]:
+    """Cameras on a circle at height 1 looking at the origin, upright for `up`."""
+    return [look_at(np.array([3 * np.cos(a), 3 * np.sin(a), 1.0]), up=up)
+            for a in np.linspace(0, 2 * np.pi, count, endpoint=False)]
+
+
+@pytest.mark.parametrize("cameras, up", [
+    (horizontal_ring(), [0, 0, 1]),                # the normal of the ring, as the cameras' up
+    (horizontal_ring(up=(0, 0, -1)), [0, 0, -1]),  # upside-down cameras: the side view turns
+    ([look_at(np.array([x, 0.0, 0.0]), target=(x, 5.0, 0.0)) for x in range(5)], [0, 0, 1]),
+    ([look_at(np.array([x, 0.0, 0.0]), target=(x, 5.0, 0.0)) for x in range(2)], [0, 0, 1]),
+], ids=["ring", "upside-down", "line", "two"])
+def test_view_frame_is_centred_upright_and_right_handed(cameras, up) -> None:
+    """w is the normal of the centres' plane (the cameras' up when they lie on a line),
+    signed as the cameras' up; u, v, w are a right-handed frame about the centroid."""
+    frame = view_frame(cameras)
+    R = frame.rotation.matrix()
+    np.testing.assert_allclose(R[2], up, atol=1e-9)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0)
+    centres = np.array([pose.inverse().translation for pose in cameras])
+    np.testing.assert_allclose(frame * centres.mean(axis=0), 0.0, atol=1e-9)
+
+
+@pytest.mark.parametrize("plot, scene", [("errors.png", "errors_scene.png"),
+                                         ("out/fig.pdf", "out/fig_scene.pdf")])
+def test_scene_plot_path_is_beside_the_errors_plot(plot: str, scene: str) -> None:
+    assert scene_plot_path(plot) == Path(scene)
 
 
 # --- the real set -------------------------------------------------------------------------
