@@ -27,12 +27,18 @@ class Model:
         self.normalized: dict[int, np.ndarray] = {}
         self.rays: dict[int, np.ndarray] = {}
         self.descriptors: dict[int, np.ndarray] = {}
+        # point_of[image_id] is a view of one array over every image's keypoints, which
+        # looks up the points of many images' keypoints at once (flat_offset + keypoint).
+        sizes = [len(db.images[image_id].keypoints) for image_id in self.image_ids]
+        starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+        self.flat_offset = dict(zip(self.image_ids, starts[:-1].tolist()))
+        self.point_of_flat = np.full(int(starts[-1]), -1, dtype=np.int64)
         self.point_of: dict[int, np.ndarray] = {}
-        for image_id in self.image_ids:
+        for image_id, start, stop in zip(self.image_ids, starts[:-1], starts[1:]):
             image = db.images[image_id]
             self.keypoints[image_id] = image.keypoints
             self.descriptors[image_id] = image.descriptors
-            self.point_of[image_id] = np.full(len(image.keypoints), -1, dtype=np.int64)
+            self.point_of[image_id] = self.point_of_flat[start:stop]
             self._compute_rays(image_id)
         self.poses: dict[int, pycolmap.Rigid3d] = {}
         self.fixed_image_ids: set[int] = set()  # poses bundle adjustment holds constant
@@ -40,6 +46,8 @@ class Model:
         self.xyz = np.zeros((1024, 3))
         self.tracks: dict[int, dict[int, int]] = {}
         self.born: dict[int, int] = {}  # point id -> number of registered images at creation
+        # Images whose observations changed since the mapper last looked (take_changed).
+        self._changed: set[int] = set()
         self._next_point_id = 1  # COLMAP's point ids start at 1
 
     # --- cameras ----------------------------------------------------------------
@@ -68,6 +76,7 @@ class Model:
     def register(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
         self.poses[image_id] = cam_from_world
         self.registration_order.append(image_id)
+        self._changed.add(image_id)
 
     def deregister(self, image_id: int) -> None:
         """Remove an image's pose and its observations (points keep their other ones)."""
@@ -76,6 +85,7 @@ class Model:
             self.delete_observation(point_id, image_id)
         del self.poses[image_id]
         self.registration_order.remove(image_id)
+        self._changed.add(image_id)
 
     @property
     def num_registered(self) -> int:
@@ -92,20 +102,31 @@ class Model:
         self.born[point_id] = self.num_registered
         for image_id, kp in track.items():
             self.point_of[image_id][kp] = point_id
+        self._changed.update(track)
         return point_id
 
     def add_observation(self, point_id: int, image_id: int, kp: int) -> None:
         self.tracks[point_id][image_id] = kp
         self.point_of[image_id][kp] = point_id
+        self._changed.add(image_id)
 
     def delete_observation(self, point_id: int, image_id: int) -> None:
         kp = self.tracks[point_id].pop(image_id)
         self.point_of[image_id][kp] = -1
+        self._changed.add(image_id)
 
     def delete_point(self, point_id: int) -> None:
-        for image_id, kp in self.tracks.pop(point_id).items():
+        track = self.tracks.pop(point_id)
+        for image_id, kp in track.items():
             self.point_of[image_id][kp] = -1
+        self._changed.update(track)
         del self.born[point_id]
+
+    def take_changed(self) -> set[int]:
+        """The images registered, deregistered or whose observations changed since the
+        last call: what the mapper's cached counts per image must look at again."""
+        changed, self._changed = self._changed, set()
+        return changed
 
     def observations(self, image_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Keypoint indices of an image that observe points, and those point ids."""

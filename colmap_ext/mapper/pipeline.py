@@ -71,6 +71,17 @@ class IncrementalMapper:
             sorted(model.image_ids, key=lambda i: model.db.images[i].name))}
         self.trials: dict[int, int] = defaultdict(int)
         self.num_images_at_global_ba = 0
+        # Per unregistered image: model points it sees through verified matches, kept
+        # between rounds and counted again only when a neighbour's observations change.
+        self._visible: dict[int, int] = {}
+        self._connected: set[int] = set()  # images with raw matches to a registered one
+        # Per image, its verified matches as (other image, flat index of the other's
+        # keypoint in model.point_of_flat): the points it sees, in one lookup.
+        self._matched_keypoints = {
+            image_id: (np.concatenate([np.full(len(m), other_id) for other_id, m in pairs.items()]),
+                       np.concatenate([model.flat_offset[other_id] + m[:, 1].astype(np.int64)
+                                       for other_id, m in pairs.items()]))
+            for image_id, pairs in self.graph.items() if pairs}
 
     def run(self, excluded_pairs: set[Pair]) -> bool:
         """Reconstruct from the best initial pair, or go on from the model's registered
@@ -119,16 +130,32 @@ class IncrementalMapper:
     def _candidates(self) -> list[int]:
         """Unregistered images to try, best first, in the configured order."""
         model = self.model
+        changed = model.take_changed()
+        for image_id in changed & set(model.poses):
+            self._connected.update(self.raw_graph.get(image_id, {}))
         unregistered = [i for i in model.image_ids if i not in model.poses
                         and self.trials[i] < self.options.registration.max_trials
-                        and any(o in model.poses for o in self.raw_graph.get(i, {}))]
-        visible = {i: len(np.unique(track_correspondences(model, i, self.graph)[1]))
-                   for i in unregistered}
+                        and i in self._connected]
+        registered = np.zeros(max(model.image_ids) + 1, bool)
+        registered[list(model.poses)] = True
+        for i in unregistered:
+            if i not in self._visible or not changed.isdisjoint(self.graph.get(i, {})):
+                self._visible[i] = self._count_visible(i, registered)
+        visible = self._visible
         if self.options.registration.order == "sequence":
             registered = np.array([self.sequence_index[i] for i in model.poses])
             distance = {i: np.abs(registered - self.sequence_index[i]).min() for i in unregistered}
             return sorted(unregistered, key=lambda i: (distance[i], -visible[i]))
         return sorted(unregistered, key=lambda i: (-visible[i], self.sequence_index[i]))
+
+    def _count_visible(self, image_id: int, registered: np.ndarray) -> int:
+        """Model points an image sees through its verified matches to registered images
+        (as track_correspondences finds them, counted once each)."""
+        if image_id not in self._matched_keypoints:
+            return 0
+        others, flat_index = self._matched_keypoints[image_id]
+        points = self.model.point_of_flat[flat_index]
+        return len(np.unique(points[(points >= 0) & registered[others]]))
 
     def _neighbours(self, image_id: int, limit: int) -> list[int]:
         """Registered images most connected to `image_id`: shared points, then matches."""
