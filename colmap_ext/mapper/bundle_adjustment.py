@@ -76,6 +76,8 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     ba_options.ceres.solver_options.max_num_iterations = max_iterations
     ba_options.ceres.solver_options.function_tolerance = ba.function_tolerance
     ba_options.ceres.solver_options.num_threads = options.threads()
+    ba_options.ceres.min_num_residuals_for_cpu_multi_threading = \
+        ba.min_num_residuals_for_multi_threading
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
     if not summary.is_solution_usable():
         return 0  # not solved (e.g. COLMAP could not fix the gauge): the model stays as it was

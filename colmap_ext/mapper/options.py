@@ -172,6 +172,8 @@ class BundleAdjustmentOptions:
     loss_scale_px: float = 1.0
     # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
     function_tolerance: float = 1e-5
+    # Smaller problems (residuals) are solved on one thread, larger on MapperOptions.threads().
+    min_num_residuals_for_multi_threading: int = 50000
     # Refine the intrinsics in global adjustments (the method holds them constant).
     refine_focal_length: bool = False
     refine_principal_point: bool = False
@@ -190,6 +192,8 @@ class BundleAdjustmentOptions:
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
+        _require(self.min_num_residuals_for_multi_threading >= 0, self,
+                 "min_num_residuals_for_multi_threading", ">= 0")
 
 
 @dataclass
