@@ -78,9 +78,9 @@ class IncrementalMapper:
         # Per image, its verified matches as (other image, flat index of the other's
         # keypoint in model.point_of_flat): the points it sees, in one lookup.
         self._matched_keypoints = {
-            image_id: (np.concatenate([np.full(len(m), other_id) for other_id, m in pairs.items()]),
-                       np.concatenate([model.flat_offset[other_id] + m[:, 1].astype(np.int64)
-                                       for other_id, m in pairs.items()]))
+            image_id: (np.concatenate([np.full(len(m), other) for other, m in pairs.items()]),
+                       np.concatenate([model.flat_offset[other] + m[:, 1].astype(np.int64)
+                                       for other, m in pairs.items()]))
             for image_id, pairs in self.graph.items() if pairs}
 
     def run(self, excluded_pairs: set[Pair]) -> bool:
@@ -115,11 +115,12 @@ class IncrementalMapper:
         every image against its neighbours, which now include the images across the
         junction; the better poses of each round let the next match more of them."""
         self._global_adjustment()
+        num_images = self.options.guided_matching.num_images
         for _ in range(self.options.merging.refinement_rounds):
             with self.timer("triangulation"):
                 for image_id in list(self.model.poses):
                     triangulate_image(self.model, image_id,
-                                      self._neighbours(image_id, self.options.guided_matching.num_images),
+                                      self._neighbours(image_id, num_images),
                                       self.options, min_views=2)
             self._global_adjustment(final=True)
 
@@ -136,11 +137,11 @@ class IncrementalMapper:
         unregistered = [i for i in model.image_ids if i not in model.poses
                         and self.trials[i] < self.options.registration.max_trials
                         and i in self._connected]
-        registered = np.zeros(max(model.image_ids) + 1, bool)
-        registered[list(model.poses)] = True
+        is_registered = np.zeros(max(model.image_ids) + 1, bool)
+        is_registered[list(model.poses)] = True
         for i in unregistered:
             if i not in self._visible or not changed.isdisjoint(self.graph.get(i, {})):
-                self._visible[i] = self._count_visible(i, registered)
+                self._visible[i] = self._count_visible(i, is_registered)
         visible = self._visible
         if self.options.registration.order == "sequence":
             registered = np.array([self.sequence_index[i] for i in model.poses])
@@ -148,14 +149,14 @@ class IncrementalMapper:
             return sorted(unregistered, key=lambda i: (distance[i], -visible[i]))
         return sorted(unregistered, key=lambda i: (-visible[i], self.sequence_index[i]))
 
-    def _count_visible(self, image_id: int, registered: np.ndarray) -> int:
+    def _count_visible(self, image_id: int, is_registered: np.ndarray) -> int:
         """Model points an image sees through its verified matches to registered images
         (as track_correspondences finds them, counted once each)."""
         if image_id not in self._matched_keypoints:
             return 0
         others, flat_index = self._matched_keypoints[image_id]
         points = self.model.point_of_flat[flat_index]
-        return len(np.unique(points[(points >= 0) & registered[others]]))
+        return len(np.unique(points[(points >= 0) & is_registered[others]]))
 
     def _neighbours(self, image_id: int, limit: int) -> list[int]:
         """Registered images most connected to `image_id`: shared points, then matches."""
@@ -214,9 +215,8 @@ class IncrementalMapper:
     def _after_registration(self, image_id: int) -> None:
         options = self.options
         with self.timer("triangulation"):
-            triangulate_image(self.model, image_id,
-                              self._neighbours(image_id, options.guided_matching.num_images), options,
-                              min_views=2)
+            neighbours = self._neighbours(image_id, options.guided_matching.num_images)
+            triangulate_image(self.model, image_id, neighbours, options, min_views=2)
         ratio = options.bundle_adjustment.global_images_ratio
         if self.model.num_registered >= ratio * self.num_images_at_global_ba:
             self._global_adjustment()
