@@ -15,6 +15,7 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
+from colmap_ext import distributed
 from colmap_ext.errors import UserError
 from colmap_ext.features import (
     CAMERA_MODES,
@@ -60,18 +61,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="replace the database and models of an earlier run")
     parser.add_argument("--output_type", choices=[*OUTPUT_TYPES, *(t.lower() for t in OUTPUT_TYPES)],
                         default="BIN")
+    parser.add_argument("--ray_address", default=None,
+                        help="extract and match on a Ray cluster: auto (the running cluster), "
+                             "local (start one here) or HOST:PORT; the same database as "
+                             "without it")
 
 
 def main(image_path: str, workspace_path: str, camera_model: str, camera_params: str,
          camera_mode: str = "single", mask_path: str | None = None, segment: str | None = None,
          min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS, matcher: str = "auto",
-         seed: int | None = None, overwrite: bool = False, output_type: str = "BIN") -> dict:
-    """Run masks (optional), features, matching and the mapper; returns the summary."""
+         seed: int | None = None, overwrite: bool = False, output_type: str = "BIN",
+         ray_address: str | None = None) -> dict:
+    """Run masks (optional), features, matching and the mapper; returns the summary.
+    With `ray_address`, features and matching run as tasks on that Ray cluster
+    (distributed.py), which is reached before anything is written."""
     start = time.perf_counter()
     workspace = Path(workspace_path)
+    if ray_address is not None:
+        distributed.check_address(ray_address)
     names, params = check_inputs(image_path, workspace, camera_model, camera_params,
                                  camera_mode, mask_path, segment, min_num_keypoints, matcher,
                                  overwrite, output_type)
+    with distributed.optional_cluster(ray_address) as cluster:
+        return run_stages(image_path, workspace, camera_model, camera_mode, mask_path, segment,
+                          min_num_keypoints, matcher, seed, overwrite, output_type, names,
+                          params, cluster, start)
+
+
+def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode: str,
+               mask_path: str | None, segment: str | None, min_num_keypoints: int,
+               matcher: str, seed: int | None, overwrite: bool, output_type: str,
+               names: list[str], params: list[float], cluster: distributed.Cluster | None,
+               start: float) -> dict:
+    """The stages of `main` once the inputs are checked; `cluster`: where features and
+    matching run (None: here)."""
     seed = secrets.randbits(31) if seed is None else seed
     database_path = workspace / DATABASE_NAME
     database_path.unlink(missing_ok=True)
@@ -87,13 +110,19 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
         with stage(times, "masks"):
             coverage = make_masks(image_path, mask_path, segment, names)
         summary["masks"] = {"path": mask_path, "coverage": coverage}
-    with stage(times, "features"):
-        features = extract_features(database_path, image_path, camera_model=camera_model,
-                                    camera_params=camera_params, camera_mode=camera_mode,
-                                    mask_path=mask_path, min_num_keypoints=min_num_keypoints,
-                                    image_names=names)
+    if cluster is None:
+        with stage(times, "features"):
+            features = extract_features(database_path, image_path, camera_model=camera_model,
+                                        camera_params=params, camera_mode=camera_mode,
+                                        mask_path=mask_path, min_num_keypoints=min_num_keypoints,
+                                        image_names=names)
+        matching = match_features(database_path, matcher=matcher, seed=seed)
+    else:
+        features, matching, summary["ray"] = distributed.extract_and_match(
+            cluster, database_path, image_path, times, camera_model=camera_model,
+            camera_params=params, camera_mode=camera_mode, mask_path=mask_path,
+            min_num_keypoints=min_num_keypoints, image_names=names, matcher=matcher, seed=seed)
     summary["features"] = features.to_dict()
-    matching = match_features(database_path, matcher=matcher, seed=seed)
     times["matching"] = matching.matching_seconds
     times["verification"] = matching.verification_seconds
     summary["matching"] = matching.to_dict()

@@ -960,6 +960,111 @@ def _(env):
     return _compare(env)
 
 
+# ---- Ray and hierarchical_mapper
+
+
+def unreachable_address() -> str:
+    """HOST:PORT where nothing listens (a port just bound and released)."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        return f"127.0.0.1:{sock.getsockname()[1]}"
+
+
+@case("reconstruct_ray_unreachable", "cannot reach the Ray cluster at 127.0.0.1:",
+      command="reconstruct")
+def _(env):
+    return _reconstruct(env, "--ray_address", unreachable_address())
+
+
+@case("reconstruct_ray_unreachable_keeps_the_old_database",
+      "cannot reach the Ray cluster at 127.0.0.1:", command="reconstruct")
+def _(env):
+    args = _reconstruct(env, "--overwrite", "--ray_address", unreachable_address())
+    env.out.mkdir()
+    shutil.copyfile(env.assets.small[0], env.out / "database.db")
+    env.protected.append(env.out)
+    return args
+
+
+@case("reconstruct_ray_address_malformed", "--ray_address must be auto, local or HOST:PORT",
+      command="reconstruct")
+def _(env):
+    return _reconstruct(env, "--ray_address", "cluster.example")
+
+
+def _hierarchical(env, *extra: str, database: Path | None = None) -> list[str]:
+    return ["hierarchical_mapper", "--database_path", str(database or env.small_db()),
+            "--image_path", str(env.images()), "--output_path", str(env.out), *extra]
+
+
+@case("hier_db_missing", "database not found", command="hierarchical_mapper")
+def _(env):
+    return _hierarchical(env, database=env.inputs / "nope.db")
+
+
+@case("hier_not_sqlite", "not an SQLite database", command="hierarchical_mapper")
+def _(env):
+    (env.inputs / "database.db").write_text("not a database")
+    return _hierarchical(env, database=env.inputs / "database.db")
+
+
+@case("hier_leaf_too_small", "--leaf_max_num_images must be at least 3",
+      command="hierarchical_mapper")
+def _(env):
+    return _hierarchical(env, "--leaf_max_num_images", "2")
+
+
+@case("hier_leaf_not_a_number", "invalid int value", code=2, command="hierarchical_mapper")
+def _(env):
+    return _hierarchical(env, "--leaf_max_num_images", "many")
+
+
+@case("hier_negative_overlap", "--image_overlap must be >= 0", command="hierarchical_mapper")
+def _(env):
+    return _hierarchical(env, "--image_overlap", "-5")
+
+
+@case("hier_zero_workers", "--num_workers must be positive or -1", command="hierarchical_mapper")
+def _(env):
+    return _hierarchical(env, "--num_workers", "0")
+
+
+@case("hier_ray_unreachable", "cannot reach the Ray cluster at 127.0.0.1:",
+      command="hierarchical_mapper")
+def _(env):
+    return _hierarchical(env, "--ray_address", unreachable_address())
+
+
+@case("hier_missing_database_flag", "the following arguments are required: --database_path",
+      code=2, command="hierarchical_mapper")
+def _(env):
+    return ["hierarchical_mapper", "--image_path", str(env.images()), "--output_path", str(env.out)]
+
+
+@case("hier_images_not_in_folder", "images of the database are not under",
+      command="hierarchical_mapper")
+def _(env):
+    database = env.small_db()
+    (env.inputs / "other").mkdir()
+    return ["hierarchical_mapper", "--database_path", str(database), "--image_path",
+            str(env.inputs / "other"), "--output_path", str(env.out)]
+
+
+@case("hier_previous_model", "already holds a model; pass --overwrite",
+      command="hierarchical_mapper")
+def _(env):
+    env.previous_model()
+    return _hierarchical(env)
+
+
+@case("hier_unknown_mapper_flag", "unrecognized arguments: --Mapper.no_such_option", code=2,
+      command="hierarchical_mapper")
+def _(env):
+    return _hierarchical(env, "--Mapper.no_such_option", "1")
+
+
 # ---------------------------------------------------------------- running and checking
 
 
