@@ -315,21 +315,27 @@ def ring_errors(model: Path, scene) -> dict:
 @pytest.mark.parametrize("fix", [False, True])
 def test_input_path_registers_the_other_images_into_the_model(synthetic_ring, half_ring,
                                                               tmp_path, fix):
-    """The rest of the ring joins the given model: all 12 images in one model, as accurate
-    as a single run; with fix_existing_images, the given poses are kept exactly. The input
-    model and the database are not written."""
+    """The rest of the ring joins the given model (BIN, or TXT as model_converter writes
+    it): all 12 images in one model, as accurate as a single run; with
+    fix_existing_images, the given poses are kept exactly. The input model and the
+    database are not written."""
     folder, scene = synthetic_ring
-    before = folder_digest(half_ring), sha256(folder / "database.db")
-    map_ring(folder, tmp_path / "full", "--input_path", half_ring,
+    given_model = half_ring
+    if fix:  # the same model as TXT
+        given_model = tmp_path / "half_txt"
+        given_model.mkdir()
+        pycolmap.Reconstruction(half_ring).write_text(given_model)
+    before = folder_digest(given_model), sha256(folder / "database.db")
+    map_ring(folder, tmp_path / "full", "--input_path", given_model,
              "--Mapper.fix_existing_images", str(int(fix)))
-    assert (folder_digest(half_ring), sha256(folder / "database.db")) == before
+    assert (folder_digest(given_model), sha256(folder / "database.db")) == before
     assert sorted(p.name for p in (tmp_path / "full").iterdir()) == ["0", "mapper_summary.json"]
     continued = ring_errors(tmp_path / "full" / "0", scene)
     assert continued["num_registered"] == 12
     map_ring(folder, tmp_path / "single")
     single = ring_errors(tmp_path / "single" / "0", scene)
     assert continued["R_err_max_deg"] < single["R_err_max_deg"] + 0.05
-    given = pycolmap.Reconstruction(half_ring)
+    given = pycolmap.Reconstruction(given_model)
     result = pycolmap.Reconstruction(tmp_path / "full" / "0")
     by_name = {image.name: image for image in result.images.values()}
     moved = max(np.abs(by_name[image.name].cam_from_world().matrix()
