@@ -100,7 +100,8 @@ class NearestDescriptors:
         self._bytes = 0
 
     def __call__(self, image_id: int, other_id: int) -> tuple[np.ndarray, np.ndarray]:
-        """(index, angles), each (keypoints of image_id, k), nearest first."""
+        """(index, angles), each (keypoints of image_id, k), nearest first; one column
+        for a pair whose candidates are the database's matches."""
         self.prefetch(image_id, [other_id])
         self._pairs.move_to_end((image_id, other_id))
         return self._pairs[(image_id, other_id)]
@@ -137,8 +138,9 @@ class NearestDescriptors:
         return nearest_descriptors(queries, database, self.k, subset, k)
 
     def _matched(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
-        """As `_search`, from the database's matches of the pair: one candidate per
-        matched keypoint, then none (index 0 at an infinite angle)."""
+        """As `_search`, from the database's matches of the pair: each matched keypoint's
+        one candidate, in a single column (index 0 at an infinite angle for the others);
+        within `subset`, the same in the first of k columns."""
         if (image_id, other_id) in self.matches:
             pairs = self.matches[(image_id, other_id)]
         else:
@@ -150,14 +152,14 @@ class NearestDescriptors:
 
         def candidates(found: np.ndarray, targets: np.ndarray,
                        columns: int) -> tuple[np.ndarray, np.ndarray]:
-            index = np.zeros((num_queries, columns), np.int64)
+            index = np.zeros((num_queries, columns), np.int32)
             angles = np.full((num_queries, columns), np.inf, np.float32)
             if columns:
                 index[kps[found], 0] = targets
                 angles[kps[found], 0] = _angles(cosines[found])
             return index, angles
 
-        index, angles = candidates(np.ones(len(kps), bool), other_kps, self.k)
+        index, angles = candidates(np.ones(len(kps), bool), other_kps, 1)
         position = np.full(len(self.descriptors[other_id]), -1, np.int64)
         position[subset] = np.arange(len(subset))
         in_subset = position[other_kps] >= 0
