@@ -29,7 +29,8 @@ from colmap_ext.angles import rotation_angles_deg, vector_angles_deg
 from colmap_ext.database import DatabaseContents, check_database_file, read_database
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from_flags
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.bundle_adjustment import adjustment_options
+from colmap_ext.mapper.options import MapperOptions, MergingOptions
 from colmap_ext.mapper.pipeline import StageTimer, reconstruct, summarize
 from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json, write_models
 
@@ -50,11 +51,8 @@ class HierarchicalOptions:
     # similarity: rotation and centre direction within merge_max_angle_deg (merging.py's
     # rule and default), centre within max_centre_error of the overlap's extent.
     min_shared_images: int = 3
-    merge_max_angle_deg: float = 5.0
+    merge_max_angle_deg: float = MergingOptions.max_angle_deg
     max_centre_error: float = 0.05
-    # Global bundle adjustment of the joined model (Cauchy loss at 1 px, as the mapper's).
-    ba_max_iterations: int = 50
-    ba_function_tolerance: float = 1e-5
     # Observations reprojecting farther than this after the adjustment are dropped.
     max_reproj_error_px: float = 4.0
 
@@ -365,25 +363,21 @@ def join(db: DatabaseContents, models: list[ClusterModel],
     return reconstruction
 
 
-def bundle_adjust(reconstruction: pycolmap.Reconstruction, options: HierarchicalOptions,
-                  num_threads: int) -> None:
-    """Global adjustment of poses and points, intrinsics constant, the gauge fixed by
-    two cameras; then observations beyond max_reproj_error_px are dropped (and with
-    them points left with one: COLMAP's ObservationManager)."""
+def bundle_adjust(reconstruction: pycolmap.Reconstruction, mapper_options: MapperOptions,
+                  options: HierarchicalOptions, num_threads: int) -> None:
+    """Global adjustment of poses and points as the mapper's (its loss and Ceres
+    limits), intrinsics constant, the gauge fixed by two cameras; then observations
+    beyond max_reproj_error_px are dropped (and with them points left with one:
+    COLMAP's ObservationManager)."""
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in reconstruction.reg_image_ids():
         config.add_image(image_id)
     for camera_id in reconstruction.cameras:
         config.set_constant_cam_intrinsics(camera_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    ba_options = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=False, refine_principal_point=False, refine_extra_params=False,
-        print_summary=False)
-    ba_options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    ba_options.ceres.loss_function_scale = 1.0
-    ba_options.ceres.solver_options.max_num_iterations = options.ba_max_iterations
-    ba_options.ceres.solver_options.function_tolerance = options.ba_function_tolerance
-    ba_options.ceres.solver_options.num_threads = num_threads
+    ba_options = adjustment_options(
+        mapper_options, mapper_options.bundle_adjustment.global_max_iterations,
+        num_threads=num_threads)
     pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
     manager = pycolmap.ObservationManager(reconstruction)
     manager.filter_points3D_with_large_reprojection_error(
@@ -441,7 +435,7 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
         reconstructions = [join(db, models, group) for group in groups]
     with timer("bundle adjustment"):
         for reconstruction in reconstructions:
-            bundle_adjust(reconstruction, options, cores)
+            bundle_adjust(reconstruction, mapper_options, options, cores)
     reconstructions = [r for r in reconstructions if r.num_reg_images() >= 2]
     return sorted(reconstructions, key=lambda r: (-r.num_reg_images(), -r.num_points3D())), \
         reports

@@ -38,6 +38,29 @@ def to_reconstruction(model: Model, image_ids: list[int],
     return reconstruction
 
 
+def adjustment_options(options: MapperOptions, max_iterations: int,
+                       refine_intrinsics: bool = False,
+                       num_threads: int | None = None) -> pycolmap.BundleAdjustmentOptions:
+    """pycolmap's options for one adjustment with ours: the robust loss, Ceres's limits
+    and threads (default: options.threads()), and the intrinsics refined only where
+    `refine_intrinsics` and the options ask for it."""
+    ba = options.bundle_adjustment
+    refine = refine_intrinsics and ba.refines_intrinsics
+    ba_options = pycolmap.BundleAdjustmentOptions(
+        refine_focal_length=refine and ba.refine_focal_length,
+        refine_principal_point=refine and ba.refine_principal_point,
+        refine_extra_params=refine and ba.refine_extra_params,
+        print_summary=False)
+    ba_options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, ba.loss.upper())
+    ba_options.ceres.loss_function_scale = ba.loss_scale_px
+    ba_options.ceres.solver_options.max_num_iterations = max_iterations
+    ba_options.ceres.solver_options.function_tolerance = ba.function_tolerance
+    ba_options.ceres.solver_options.num_threads = num_threads or options.threads()
+    ba_options.ceres.min_num_residuals_for_cpu_multi_threading = \
+        ba.min_num_residuals_for_multi_threading
+    return ba_options
+
+
 def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
                   max_iterations: int, refine_intrinsics: bool = False) -> int:
     """Adjust every point `image_ids` observe and the poses of those images, except the
@@ -66,18 +89,7 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     if len(constant) < 2:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
 
-    ba_options = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=refine_intrinsics and ba.refine_focal_length,
-        refine_principal_point=refine_intrinsics and ba.refine_principal_point,
-        refine_extra_params=refine_intrinsics and ba.refine_extra_params,
-        print_summary=False)
-    ba_options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, ba.loss.upper())
-    ba_options.ceres.loss_function_scale = ba.loss_scale_px
-    ba_options.ceres.solver_options.max_num_iterations = max_iterations
-    ba_options.ceres.solver_options.function_tolerance = ba.function_tolerance
-    ba_options.ceres.solver_options.num_threads = options.threads()
-    ba_options.ceres.min_num_residuals_for_cpu_multi_threading = \
-        ba.min_num_residuals_for_multi_threading
+    ba_options = adjustment_options(options, max_iterations, refine_intrinsics)
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
     if not summary.is_solution_usable():
         return 0  # not solved (e.g. COLMAP could not fix the gauge): the model stays as it was
