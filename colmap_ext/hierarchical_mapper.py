@@ -29,7 +29,7 @@ from colmap_ext.angles import rotation_angles_deg, vector_angles_deg
 from colmap_ext.database import DatabaseContents, check_database_file, read_database
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from_flags
-from colmap_ext.mapper.bundle_adjustment import adjustment_options
+from colmap_ext.mapper.bundle_adjustment import adjustment_options, posed_images
 from colmap_ext.mapper.options import MapperOptions, MergingOptions
 from colmap_ext.mapper.pipeline import StageTimer, reconstruct, summarize
 from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json, write_models
@@ -343,14 +343,8 @@ def join(db: DatabaseContents, models: list[ClusterModel],
         tracks.setdefault(root, {}).setdefault(image_id, keypoint)
         members.setdefault(root, set()).add(point)
 
-    reconstruction = pycolmap.Reconstruction()
-    for camera_id in sorted({db.images[i].camera_id for i in pose_of}):
-        reconstruction.add_camera_with_trivial_rig(db.cameras[camera_id])
-    for image_id in sorted(pose_of):
-        features = db.images[image_id]
-        image = pycolmap.Image(name=features.name, keypoints=features.keypoints,
-                               camera_id=features.camera_id, image_id=image_id)
-        reconstruction.add_image_with_trivial_frame(image, pose_of[image_id][1])
+    reconstruction = posed_images(db, db.cameras, {image_id: pose_of[image_id][1]
+                                                   for image_id in sorted(pose_of)})
     for root, track in tracks.items():
         if len(track) < 2:
             continue

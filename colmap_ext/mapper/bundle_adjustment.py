@@ -9,22 +9,32 @@ from __future__ import annotations
 
 import pycolmap
 
+from colmap_ext.database import DatabaseContents
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
+
+
+def posed_images(db: DatabaseContents, cameras: dict[int, pycolmap.Camera],
+                 poses: dict[int, pycolmap.Rigid3d]) -> pycolmap.Reconstruction:
+    """A reconstruction of the database's images posed by `poses` (cam_from_world by
+    image id, ids kept), with their keypoints and cameras, and no points yet."""
+    reconstruction = pycolmap.Reconstruction()
+    for camera_id in sorted({db.images[i].camera_id for i in poses}):
+        reconstruction.add_camera_with_trivial_rig(cameras[camera_id])
+    for image_id, pose in poses.items():
+        features = db.images[image_id]
+        image = pycolmap.Image(name=features.name, keypoints=features.keypoints,
+                               camera_id=features.camera_id, image_id=image_id)
+        reconstruction.add_image_with_trivial_frame(image, pose)
+    return reconstruction
 
 
 def to_reconstruction(model: Model, image_ids: list[int],
                       point_ids: list[int]) -> pycolmap.Reconstruction:
     """A reconstruction of the given registered images and points (ids kept); every
     image observing one of the points must be among `image_ids`."""
-    reconstruction = pycolmap.Reconstruction()
-    for camera_id in sorted({model.db.images[i].camera_id for i in image_ids}):
-        reconstruction.add_camera_with_trivial_rig(model.cameras[camera_id])
-    for image_id in image_ids:
-        features = model.db.images[image_id]
-        image = pycolmap.Image(name=features.name, keypoints=features.keypoints,
-                               camera_id=features.camera_id, image_id=image_id)
-        reconstruction.add_image_with_trivial_frame(image, model.poses[image_id])
+    reconstruction = posed_images(model.db, model.cameras,
+                                  {image_id: model.poses[image_id] for image_id in image_ids})
     for point_id in point_ids:
         track = pycolmap.Track()
         for image_id, kp in model.tracks[point_id].items():
