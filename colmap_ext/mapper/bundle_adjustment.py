@@ -29,15 +29,23 @@ def posed_images(db: DatabaseContents, cameras: dict[int, pycolmap.Camera],
     return reconstruction
 
 
-def to_reconstruction(model: Model, image_ids: list[int],
-                      point_ids: list[int]) -> pycolmap.Reconstruction:
+def to_reconstruction(model: Model, image_ids: list[int], point_ids: list[int],
+                      long_track_image_ids: set[int] | None = None,
+                      max_track_length: int = 0) -> pycolmap.Reconstruction:
     """A reconstruction of the given registered images and points (ids kept); every
-    image observing one of the points must be among `image_ids`."""
+    image observing one of the points must be among `image_ids`, except that points
+    seen by more than `max_track_length` images keep just their observations by
+    `long_track_image_ids` when that is given (and are left out with fewer than two)."""
     reconstruction = posed_images(model.db, model.cameras,
                                   {image_id: model.poses[image_id] for image_id in image_ids})
     for point_id in point_ids:
+        observations = model.tracks[point_id]
+        if long_track_image_ids is not None and len(observations) > max_track_length:
+            observations = {i: kp for i, kp in observations.items() if i in long_track_image_ids}
+            if len(observations) < 2:
+                continue  # one observation alone does not constrain the point
         track = pycolmap.Track()
-        for image_id, kp in model.tracks[point_id].items():
+        for image_id, kp in observations.items():
             track.add_element(image_id, kp)
         # Attributes set one by one: 2.5x faster than Point3D's keyword constructor, which
         # made this loop a tenth of the mapper's time on 4400-keypoint images.
@@ -74,18 +82,22 @@ def adjustment_options(options: MapperOptions, max_iterations: int,
 def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
                   max_iterations: int, refine_intrinsics: bool = False) -> int:
     """Adjust every point `image_ids` observe and the poses of those images, except the
-    model's fixed images; the other registered images observing the points hold their
-    poses constant. Without two constant images, two cameras fix the gauge. With
-    `refine_intrinsics`, the intrinsics the options name are refined too.
-    Returns the number of Ceres iterations."""
+    model's fixed images. The other registered images observing a point with at most
+    BundleAdjustmentOptions.local_max_track_length observations add them with their poses constant; longer
+    tracks are already well determined and enter through `image_ids`' observations
+    alone (COLMAP's local adjustment). Without two constant images, two cameras fix
+    the gauge. With `refine_intrinsics`, the intrinsics the options name are refined
+    too. Returns the number of Ceres iterations."""
     ba = options.bundle_adjustment
     requested = set(image_ids)
     point_ids = sorted({int(p) for i in requested for p in model.observations(i)[1]})
-    observing = {i for p in point_ids for i in model.tracks[p]}
+    observing = {i for p in point_ids if len(model.tracks[p]) <= ba.local_max_track_length
+                 for i in model.tracks[p]}
     problem_image_ids = sorted(requested | observing)
     variable = requested - model.fixed_image_ids
     constant = set(problem_image_ids) - variable
-    reconstruction = to_reconstruction(model, problem_image_ids, point_ids)
+    reconstruction = to_reconstruction(model, problem_image_ids, point_ids, requested,
+                                       ba.local_max_track_length)
     refine_intrinsics = refine_intrinsics and ba.refines_intrinsics
 
     config = pycolmap.BundleAdjustmentConfig()
@@ -106,8 +118,8 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
 
     for image_id in variable:
         model.poses[image_id] = reconstruction.images[image_id].cam_from_world()
-    for point_id in point_ids:
-        model.xyz[point_id] = reconstruction.points3D[point_id].xyz
+    for point_id, point in reconstruction.points3D.items():
+        model.xyz[point_id] = point.xyz
     if refine_intrinsics:
         for camera_id, camera in reconstruction.cameras.items():
             model.set_camera(camera_id, camera)

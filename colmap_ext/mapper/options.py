@@ -161,6 +161,9 @@ class BundleAdjustmentOptions:
 
     # Images of a local adjustment: the new one and its most connected registered images.
     local_num_images: int = 6
+    # Points seen by more images enter a local adjustment through the local images'
+    # observations alone; shorter tracks bring their other images in, poses constant.
+    local_max_track_length: int = 15
     # Ceres iterations of a local adjustment.
     local_max_iterations: int = 25
     # A global adjustment whenever the registered images have grown by this ratio.
@@ -187,6 +190,7 @@ class BundleAdjustmentOptions:
     def check(self) -> None:
         _require(self.local_num_images >= 2, self, "local_num_images", ">= 2")
         _require(self.local_max_iterations >= 1, self, "local_max_iterations", ">= 1")
+        _require(self.local_max_track_length >= 2, self, "local_max_track_length", ">= 2")
         _require(self.global_images_ratio > 1, self, "global_images_ratio", "> 1")
         _require(self.global_max_iterations >= 1, self, "global_max_iterations", ">= 1")
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
