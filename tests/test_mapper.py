@@ -237,14 +237,6 @@ def ring_arcs(db, options, monkeypatch) -> tuple[list[Model], dict]:
     return arcs, matches
 
 
-def move(model: Model, similarity: pycolmap.Sim3d) -> None:
-    """Apply a similarity to the model's poses and points."""
-    for image_id, pose in model.poses.items():
-        model.poses[image_id] = similarity.transform_camera_world(pose)
-    point_ids = list(model.tracks)
-    model.xyz[point_ids] = similarity * model.xyz[point_ids]
-
-
 def true_from_model(model: Model, scene) -> pycolmap.Sim3d:
     """The similarity that puts the model's camera centres best onto the true ones."""
     registered = list(model.poses)
@@ -264,10 +256,10 @@ def test_merging_recovers_a_known_similarity(synthetic, monkeypatch):
     options = MapperOptions(seed=0)
     (target, source), matches = ring_arcs(db, options, monkeypatch)
     for model in (target, source):
-        move(model, true_from_model(model, scene))
+        model.transform(true_from_model(model, scene))
     applied = pycolmap.Sim3d(2.5, pycolmap.Rotation3d(np.array([0.3, -0.5, 0.8])),
                              np.array([4.0, -3.0, 1.0]))
-    move(source, applied)
+    source.transform(applied)
 
     found = find_similarity(target, source, pair_graph(db.raw_matches), options)
     assert found is not None

@@ -1,12 +1,14 @@
 """Bundle adjustment through pycolmap (Ceres): intrinsics constant unless a global
 adjustment is asked to refine them (BundleAdjustmentOptions.refine_*).
 
-The model is copied into a pycolmap.Reconstruction holding just the images and
-points of the problem, adjusted, and the refined poses, points and cameras copied back.
+Each adjustment is a BundleAdjustmentConfig solved on the model's own
+pycolmap.Reconstruction (model.py); the refined poses and points are then read into
+the model's arrays.
 """
 
 from __future__ import annotations
 
+import numpy as np
 import pycolmap
 
 from colmap_ext.database import DatabaseContents
@@ -26,33 +28,6 @@ def posed_images(db: DatabaseContents, cameras: dict[int, pycolmap.Camera],
         image = pycolmap.Image(name=features.name, keypoints=features.keypoints,
                                camera_id=features.camera_id, image_id=image_id)
         reconstruction.add_image_with_trivial_frame(image, pose)
-    return reconstruction
-
-
-def to_reconstruction(model: Model, image_ids: list[int], point_ids: list[int],
-                      long_track_image_ids: set[int] | None = None,
-                      max_track_length: int = 0) -> pycolmap.Reconstruction:
-    """A reconstruction of the given registered images and points (ids kept); every
-    image observing one of the points must be among `image_ids`, except that points
-    seen by more than `max_track_length` images keep just their observations by
-    `long_track_image_ids` when that is given (and are left out with fewer than two)."""
-    reconstruction = posed_images(model.db, model.cameras,
-                                  {image_id: model.poses[image_id] for image_id in image_ids})
-    for point_id in point_ids:
-        observations = model.tracks[point_id]
-        if long_track_image_ids is not None and len(observations) > max_track_length:
-            observations = {i: kp for i, kp in observations.items() if i in long_track_image_ids}
-            if len(observations) < 2:
-                continue  # one observation alone does not constrain the point
-        track = pycolmap.Track()
-        for image_id, kp in observations.items():
-            track.add_element(image_id, kp)
-        # Attributes set one by one: 2.5x faster than Point3D's keyword constructor, which
-        # made this loop a tenth of the mapper's time on 4400-keypoint images.
-        point = pycolmap.Point3D()
-        point.xyz = model.xyz[point_id]
-        point.track = track
-        reconstruction.add_point3D_with_id(point_id, point)
     return reconstruction
 
 
@@ -81,46 +56,71 @@ def adjustment_options(options: MapperOptions, max_iterations: int,
 
 def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
                   max_iterations: int, refine_intrinsics: bool = False) -> int:
-    """Adjust every point `image_ids` observe and the poses of those images, except the
-    model's fixed images. The other registered images observing a point with at most
-    BundleAdjustmentOptions.local_max_track_length observations add them with their poses constant; longer
-    tracks are already well determined and enter through `image_ids`' observations
-    alone (COLMAP's local adjustment). Without two constant images, two cameras fix
-    the gauge. With `refine_intrinsics`, the intrinsics the options name are refined
-    too. Returns the number of Ceres iterations."""
+    """Adjust, on the model's reconstruction in place, the poses of `image_ids` (except
+    the model's fixed images) and the points they observe, as COLMAP's adjustments do:
+    a point seen by at most BundleAdjustmentOptions.local_max_track_length images brings
+    its other observations in, their poses constant; a longer track is already well
+    determined and enters through the observations of `image_ids` alone, held constant
+    where they are just one. Without two constant images, two cameras fix the gauge.
+    With `refine_intrinsics`, the intrinsics the options name are refined too.
+    Returns the number of Ceres iterations."""
     ba = options.bundle_adjustment
     requested = set(image_ids)
-    point_ids = sorted({int(p) for i in requested for p in model.observations(i)[1]})
-    observing = {i for p in point_ids if len(model.tracks[p]) <= ba.local_max_track_length
-                 for i in model.tracks[p]}
-    problem_image_ids = sorted(requested | observing)
-    variable = requested - model.fixed_image_ids
-    constant = set(problem_image_ids) - variable
-    reconstruction = to_reconstruction(model, problem_image_ids, point_ids, requested,
-                                       ba.local_max_track_length)
+    reconstruction = model.reconstruction
     refine_intrinsics = refine_intrinsics and ba.refines_intrinsics
-
     config = pycolmap.BundleAdjustmentConfig()
-    for image_id in problem_image_ids:
+    for image_id in sorted(requested):
         config.add_image(image_id)
+        if image_id in model.fixed_image_ids:
+            config.set_constant_rig_from_world_pose(reconstruction.images[image_id].frame_id)
     if not refine_intrinsics:
         for camera_id in reconstruction.cameras:
             config.set_constant_cam_intrinsics(camera_id)
-    for image_id in constant:
-        config.set_constant_rig_from_world_pose(reconstruction.images[image_id].frame_id)
+
+    if requested >= model.poses.keys():
+        # A global adjustment: the images hold every observation of every point.
+        variable_point_ids, outside = list(model.tracks), set()
+    else:
+        variable_point_ids, outside = _add_local_points(model, requested, config,
+                                                        ba.local_max_track_length)
+    constant = (outside - requested) | (requested & model.fixed_image_ids)
     if len(constant) < 2:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
 
     ba_options = adjustment_options(options, max_iterations, refine_intrinsics)
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
+    variable_image_ids = requested - model.fixed_image_ids
     if not summary.is_solution_usable():
-        return 0  # not solved (e.g. COLMAP could not fix the gauge): the model stays as it was
-
-    for image_id in variable:
+        # Not solved (e.g. COLMAP could not fix the gauge): the model stays as it was.
+        for image_id in variable_image_ids:
+            model.set_pose(image_id, model.poses[image_id])
+        for point_id in variable_point_ids:
+            reconstruction.points3D[point_id].xyz = model.xyz[point_id]
+        return 0
+    for image_id in variable_image_ids:
         model.poses[image_id] = reconstruction.images[image_id].cam_from_world()
-    for point_id, point in reconstruction.points3D.items():
-        model.xyz[point_id] = point.xyz
+    for point_id in variable_point_ids:
+        model.xyz[point_id] = reconstruction.points3D[point_id].xyz
     if refine_intrinsics:
         for camera_id, camera in reconstruction.cameras.items():
             model.set_camera(camera_id, camera)
     return summary.ceres_summary.num_successful_steps + summary.ceres_summary.num_unsuccessful_steps
+
+
+def _add_local_points(model: Model, image_ids: set[int], config: pycolmap.BundleAdjustmentConfig,
+                      max_track_length: int) -> tuple[list[int], set[int]]:
+    """Add the points of a local adjustment's images to `config` by COLMAP's rule (see
+    bundle_adjust). Returns the variable points and the images their tracks reach."""
+    point_ids = np.unique(np.concatenate(
+        [model.observations(image_id)[1] for image_id in image_ids])).tolist()
+    variable_point_ids, reached = [], set()
+    for point_id in point_ids:
+        track = model.tracks[point_id]
+        if len(track) <= max_track_length:
+            config.add_variable_point(point_id)
+            reached.update(track)
+        elif sum(image_id in image_ids for image_id in track) < 2:
+            config.add_constant_point(point_id)
+            continue
+        variable_point_ids.append(point_id)
+    return variable_point_ids, reached

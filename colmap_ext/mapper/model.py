@@ -1,10 +1,13 @@
 """The growing model: registered poses and 3D points with their tracks.
 
-Features live in arrays per image (normalized coordinates, unit rays, uint8 SIFT
-descriptors, and `point_of`, the point each keypoint observes or -1). Points live in
-a growable (P, 3) array indexed by point id, with a dict per point for its track
-(image id -> keypoint index): every step touches a neighbourhood of images, so
-per-image arrays keep the geometry vectorised and tracks stay cheap to edit.
+One pycolmap.Reconstruction holds the model for the whole run (`Model.reconstruction`):
+every edit below is made on it in place, and bundle adjustment solves on it directly,
+so nothing is rebuilt for a solve. Beside it, for the vectorised geometry of every
+step, live arrays per image (normalized coordinates, unit rays, uint8 SIFT
+descriptors, and `point_of`, the point each keypoint observes or -1), the points'
+positions in a growable (P, 3) array indexed by point id, and a dict per point for
+its track (image id -> keypoint index). A point keeps at least two observations, as
+in COLMAP: deleting one of two deletes the point.
 """
 
 from __future__ import annotations
@@ -40,6 +43,14 @@ class Model:
             self.descriptors[image_id] = image.descriptors
             self.point_of[image_id] = self.point_of_flat[start:stop]
             self._compute_rays(image_id)
+        self.reconstruction = pycolmap.Reconstruction()
+        for camera_id in sorted({db.images[i].camera_id for i in self.image_ids}):
+            self.reconstruction.add_camera_with_trivial_rig(self.cameras[camera_id])
+        for image_id in self.image_ids:
+            image = db.images[image_id]
+            self.reconstruction.add_image_with_trivial_frame(pycolmap.Image(
+                name=image.name, keypoints=image.keypoints, camera_id=image.camera_id,
+                image_id=image_id))
         self.poses: dict[int, pycolmap.Rigid3d] = {}
         self.fixed_image_ids: set[int] = set()  # poses bundle adjustment holds constant
         self.registration_order: list[int] = []
@@ -61,6 +72,7 @@ class Model:
     def set_camera(self, camera_id: int, camera: pycolmap.Camera) -> None:
         """New intrinsics for a camera, and the rays of its images from them."""
         self.cameras[camera_id] = camera
+        self.reconstruction.cameras[camera_id].params = camera.params
         for image_id in self.image_ids:
             if self.db.images[image_id].camera_id == camera_id:
                 self._compute_rays(image_id)
@@ -74,15 +86,25 @@ class Model:
         self.rays[image_id] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
 
     def register(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
-        self.poses[image_id] = cam_from_world
+        self.set_pose(image_id, cam_from_world)
+        self.reconstruction.register_frame(self._frame_id(image_id))
         self.registration_order.append(image_id)
         self._changed.add(image_id)
+
+    def set_pose(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
+        self.poses[image_id] = cam_from_world
+        self.reconstruction.frames[self._frame_id(image_id)].rig_from_world = cam_from_world
+
+    def _frame_id(self, image_id: int) -> int:
+        return self.reconstruction.images[image_id].frame_id
 
     def deregister(self, image_id: int) -> None:
         """Remove an image's pose and its observations (points keep their other ones)."""
         _, point_ids = self.observations(image_id)
         for point_id in point_ids.tolist():
-            self.delete_observation(point_id, image_id)
+            if point_id in self.tracks:
+                self.delete_observation(point_id, image_id)
+        self.reconstruction.deregister_frame(self._frame_id(image_id))
         del self.poses[image_id]
         self.registration_order.remove(image_id)
         self._changed.add(image_id)
@@ -100,6 +122,11 @@ class Model:
         self.xyz[point_id] = xyz
         self.tracks[point_id] = dict(track)
         self.born[point_id] = self.num_registered
+        point = pycolmap.Point3D()
+        point.xyz = self.xyz[point_id]
+        point.track = pycolmap.Track([pycolmap.TrackElement(image_id, kp)
+                                      for image_id, kp in track.items()])
+        self.reconstruction.add_point3D_with_id(point_id, point)
         for image_id, kp in track.items():
             self.point_of[image_id][kp] = point_id
         self._changed.update(track)
@@ -108,11 +135,17 @@ class Model:
     def add_observation(self, point_id: int, image_id: int, kp: int) -> None:
         self.tracks[point_id][image_id] = kp
         self.point_of[image_id][kp] = point_id
+        self.reconstruction.add_observation(point_id, pycolmap.TrackElement(image_id, kp))
         self._changed.add(image_id)
 
     def delete_observation(self, point_id: int, image_id: int) -> None:
+        """Delete one observation; of a point's last two, the point (COLMAP's rule)."""
+        if len(self.tracks[point_id]) <= 2:
+            self.delete_point(point_id)
+            return
         kp = self.tracks[point_id].pop(image_id)
         self.point_of[image_id][kp] = -1
+        self.reconstruction.delete_observation(image_id, kp)
         self._changed.add(image_id)
 
     def delete_point(self, point_id: int) -> None:
@@ -121,6 +154,15 @@ class Model:
             self.point_of[image_id][kp] = -1
         self._changed.update(track)
         del self.born[point_id]
+        self.reconstruction.delete_point3D(point_id)
+
+    def transform(self, similarity: pycolmap.Sim3d) -> None:
+        """Move every pose and point by a similarity."""
+        for image_id, pose in list(self.poses.items()):
+            self.set_pose(image_id, similarity.transform_camera_world(pose))
+        for point_id in self.tracks:
+            self.xyz[point_id] = similarity * self.xyz[point_id]
+            self.reconstruction.points3D[point_id].xyz = self.xyz[point_id]
 
     def take_changed(self) -> set[int]:
         """The images registered, deregistered or whose observations changed since the

@@ -16,7 +16,7 @@ from tqdm import tqdm
 
 from colmap_ext.database import DatabaseContents, read_database
 from colmap_ext.errors import UserError
-from colmap_ext.mapper.bundle_adjustment import bundle_adjust, to_reconstruction
+from colmap_ext.mapper.bundle_adjustment import bundle_adjust, posed_images
 from colmap_ext.mapper.descriptors import NearestDescriptors
 from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
@@ -367,9 +367,11 @@ def _select_images(db, image_names: list[str] | None) -> list[int]:
 
 
 def export(model: Model) -> pycolmap.Reconstruction:
-    """The model as a pycolmap.Reconstruction: registered images and supported points."""
-    point_ids = [p for p, track in model.tracks.items() if len(track) >= 2]
-    reconstruction = to_reconstruction(model, sorted(model.poses), point_ids)
+    """The model as a pycolmap.Reconstruction of its registered images alone (the
+    model's own also holds the images not registered), point ids kept."""
+    reconstruction = posed_images(model.db, model.cameras, dict(sorted(model.poses.items())))
+    for point_id, point in model.reconstruction.points3D.items():
+        reconstruction.add_point3D_with_id(point_id, point)
     reconstruction.update_point_3d_errors()
     return reconstruction
 
