@@ -18,7 +18,13 @@ that imports pycolmap alone. Wall time is the child's, from start to exit; peak 
 its maximum resident set (GNU time). The table gives medians and ratios to COLMAP
 incremental in the same run, and the last round's model against the ground truth.
 
+With --end_to_end (real sets and demo), each run starts from the images instead: ours
+`colmap-ext reconstruct` with the known intrinsics (our features, matching and mapper),
+COLMAP's pycolmap extraction (default SIFT, the same intrinsics), exhaustive matching
+and mapper, in one child.
+
     python benchmarks/mapper_speed.py [--sets temple,dino,...] [--runs 3] [--seed 0]
+        [--mappers ours,colmap_incremental] [--end_to_end]
         [--work_dir DIR] [--markdown BENCHMARKS.md]
 """
 
@@ -49,6 +55,8 @@ class PreparedSet:
     image_path: Path
     ground_truth: Path
     num_images: int
+    camera_model: str = ""  # the known intrinsics, for --end_to_end
+    camera_params: str = ""
 
 
 def colmap_worker(args: argparse.Namespace) -> int:
@@ -60,6 +68,13 @@ def colmap_worker(args: argparse.Namespace) -> int:
                                            fix_intrinsics_in_database)
 
     pycolmap.logging.minloglevel = int(pycolmap.logging.Level.WARNING)
+    if args.camera_model:  # end to end: COLMAP's own extraction and exhaustive matching first
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = args.camera_model
+        reader.camera_params = args.camera_params
+        pycolmap.extract_features(args.database, args.images, reader_options=reader,
+                                  camera_mode=pycolmap.CameraMode.SINGLE, device=pycolmap.Device.cpu)
+        pycolmap.match_exhaustive(args.database, device=pycolmap.Device.cpu)
     camera_ids, _ = fix_intrinsics_in_database(Path(args.database))
     Path(args.output).mkdir(parents=True, exist_ok=True)
     if args.worker == "colmap_incremental":
@@ -71,13 +86,28 @@ def colmap_worker(args: argparse.Namespace) -> int:
     return 0
 
 
-def mapper_command(mapper: str, database: Path, images: Path, output: Path, seed: int) -> list[str]:
+def mapper_command(mapper: str, prepared: PreparedSet, folder: Path, seed: int,
+                   end_to_end: bool) -> tuple[list[str], Path]:
+    """The command of one run in `folder`, and the folder its models end up in. End to end,
+    from the images: ours `colmap-ext reconstruct`, COLMAP's extraction, exhaustive
+    matching and mapper; otherwise each mapper on its copy of the prepared database."""
+    database = folder / "database.db"
+    if not end_to_end:
+        shutil.copyfile(prepared.database, database)
+    executable = str(Path(sys.executable).with_name("colmap-ext"))
+    if mapper == "ours" and end_to_end:
+        return [executable, "reconstruct", "--image_path", str(prepared.image_path),
+                "--workspace_path", str(folder / "out"), "--camera_model", prepared.camera_model,
+                "--camera_params", prepared.camera_params, "--seed", str(seed)], folder / "out" / "sparse"
     if mapper == "ours":
-        executable = Path(sys.executable).with_name("colmap-ext")
-        return [str(executable), "mapper", "--database_path", str(database), "--image_path",
-                str(images), "--output_path", str(output), "--seed", str(seed)]
+        return [executable, "mapper", "--database_path", str(database), "--image_path",
+                str(prepared.image_path), "--output_path", str(folder / "out"),
+                "--seed", str(seed)], folder / "out"
+    camera = ["--camera_model", prepared.camera_model, "--camera_params", prepared.camera_params] \
+        if end_to_end else []
     return [sys.executable, str(SCRIPT), "--worker", mapper, "--database", str(database),
-            "--images", str(images), "--output", str(output), "--seed", str(seed)]
+            "--images", str(prepared.image_path), "--output", str(folder / "out"),
+            "--seed", str(seed), *camera], folder / "out"
 
 
 def timed_run(command: list[str], log: Path) -> dict:
@@ -118,12 +148,14 @@ def prepare_real(name: str, folder: Path, work: Path) -> PreparedSet:
     images = folder / "images" if (folder / "images").is_dir() else folder
     names = [n for n in truth.poses if (images / n).is_file()]
     camera = next(iter(truth.cameras.values()))
+    params = [float(p) for p in camera.params]
     database = work / name / "database.db"
     if not database.exists():
         database.parent.mkdir(parents=True, exist_ok=True)
-        build_database(Dataset(name, images, ground_truth, camera.model.name,
-                               [float(p) for p in camera.params], names), database)
-    return PreparedSet(name, database, images, ground_truth, len(names))
+        build_database(Dataset(name, images, ground_truth, camera.model.name, params, names),
+                       database)
+    return PreparedSet(name, database, images, ground_truth, len(names), camera.model.name,
+                       ",".join(repr(p) for p in params))
 
 
 def prepare_demo(work: Path, seed: int) -> PreparedSet:
@@ -134,7 +166,8 @@ def prepare_demo(work: Path, seed: int) -> PreparedSet:
     if not database.exists():
         build_database(dataset, database)
     return PreparedSet("demo", database, dataset.image_path, dataset.ground_truth,
-                       len(dataset.image_names))
+                       len(dataset.image_names), dataset.camera_model,
+                       ",".join(repr(p) for p in dataset.camera_params))
 
 
 def prepare_synthetic(name: str, work: Path, seed: int) -> PreparedSet:
@@ -192,27 +225,26 @@ def largest_model(output: Path):
 
 
 def measure_set(prepared: PreparedSet, mappers: list[str], runs: int, seed: int,
-                work: Path) -> dict[str, dict]:
+                work: Path, end_to_end: bool = False) -> dict[str, dict]:
     from colmap_ext.evaluate import evaluate
     from colmap_ext.ground_truth import read_ground_truth
 
     results: dict[str, dict] = {m: {"runs": []} for m in mappers}
+    models: dict[str, Path] = {}
     for round_index in range(runs):
         turn = round_index % len(mappers)
         for mapper in mappers[turn:] + mappers[:turn]:
             folder = work / prepared.name / "runs" / mapper
             shutil.rmtree(folder, ignore_errors=True)
             folder.mkdir(parents=True)
-            shutil.copyfile(prepared.database, folder / "database.db")
-            command = mapper_command(mapper, folder / "database.db", prepared.image_path,
-                                     folder / "out", seed)
+            command, models[mapper] = mapper_command(mapper, prepared, folder, seed, end_to_end)
             run = timed_run(command, folder / "log.txt")
             print(f"  {prepared.name} {mapper} round {round_index + 1}: {run['time_s']:.1f} s, "
                   f"{run['peak_mib']:.0f} MiB, exit {run['exit_code']}", file=sys.stderr, flush=True)
             results[mapper]["runs"].append(run)
     truth = read_ground_truth(prepared.ground_truth)
     for mapper, entry in results.items():
-        output = work / prepared.name / "runs" / mapper / "out"
+        output = models[mapper]
         model = largest_model(output) if output.is_dir() else None
         if model is None or model.num_reg_images() < 2:
             entry["error"] = "no model"
@@ -298,11 +330,16 @@ def main(argv: list[str] | None = None) -> int:
                         help="also write the table as a section of this file (e.g. BENCHMARKS.md)")
     parser.add_argument("--section", default="speed",
                         help="that section's name, so that runs of different sets keep theirs")
+    parser.add_argument("--end_to_end", action="store_true",
+                        help="from the images (real sets and demo): `colmap-ext reconstruct` "
+                             "against COLMAP's extraction, exhaustive matching and mapper")
     # The child's side.
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     parser.add_argument("--database", help=argparse.SUPPRESS)
     parser.add_argument("--images", help=argparse.SUPPRESS)
     parser.add_argument("--output", help=argparse.SUPPRESS)
+    parser.add_argument("--camera_model", help=argparse.SUPPRESS)
+    parser.add_argument("--camera_params", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         return colmap_worker(args)
@@ -316,13 +353,16 @@ def main(argv: list[str] | None = None) -> int:
     mappers = [m for m in args.mappers.split(",") if m]
     if unknown or not set(mappers) <= set(MAPPERS) or args.runs < 1:
         parser.error(f"unknown sets or mappers: {', '.join(unknown) or args.mappers}")
+    without_images = [n for n in names if n not in data and n != "demo"]
+    if args.end_to_end and without_images:
+        parser.error(f"--end_to_end needs images; these sets have none: {', '.join(without_images)}")
     start = time.perf_counter()
     all_results = {}
     with work_folder(args.work_dir, "colmap-ext-speed-") as work:
         for name in names:
             print(f"=== {name}: preparing the database ...", file=sys.stderr, flush=True)
             prepared = prepare(name, data, work, args.seed)
-            results = measure_set(prepared, mappers, args.runs, args.seed, work)
+            results = measure_set(prepared, mappers, args.runs, args.seed, work, args.end_to_end)
             summarize(results)
             all_results[name] = (prepared, results)
             body = section(all_results, args, time.perf_counter() - start,
@@ -339,14 +379,21 @@ def main(argv: list[str] | None = None) -> int:
 def section(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]], args: argparse.Namespace,
             elapsed_s: float, machine: str, versions: str) -> str:
     names = ",".join(all_results)
+    flags = f" --mappers {args.mappers}" if args.mappers != ",".join(MAPPERS) else ""
+    flags += " --end_to_end" if args.end_to_end else ""
+    runs = ("each pipeline a whole process from the images: ours `colmap-ext reconstruct`, "
+            "COLMAP's pycolmap extraction (default SIFT, the known intrinsics), exhaustive "
+            "matching and mapper" if args.end_to_end else
+            "each mapper a whole process on a fresh copy of the same database")
     return "\n".join([
-        "## Speed and memory: ours against COLMAP's mappers", "",
-        f"`python benchmarks/mapper_speed.py --sets {names} --runs {args.runs}` on "
+        "## Speed and memory: ours against COLMAP's "
+        + ("pipelines, end to end" if args.end_to_end else "mappers"), "",
+        f"`python benchmarks/mapper_speed.py --sets {names} --runs {args.runs}{flags}` on "
         f"{datetime.date.today().isoformat()} ({elapsed_s / 60:.1f} min in all), seed {args.seed}.",
         f"- machine: {machine}", f"- versions: {versions}",
-        "- each mapper a whole process on a fresh copy of the same database, the order turning "
-        "each round; medians over the rounds; ratios to COLMAP incremental's medians. "
-        "R_err / C_err: the last round's largest model against the ground truth.",
+        f"- {runs}, the order turning each round; medians over the rounds; ratios to COLMAP "
+        "incremental's medians. R_err / C_err: the last round's largest model against the "
+        "ground truth.",
         *[f"- {line}" for line in growth_exponents(all_results)], "", table(all_results)])
 
 
