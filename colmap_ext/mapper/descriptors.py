@@ -85,7 +85,8 @@ class NearestDescriptors:
     (the cost grows with the product of the keypoint counts) takes its candidates from
     `matches`, the database's matches (image pair -> keypoint index pairs, as
     DatabaseContents.raw_matches): each matched keypoint's one candidate is the keypoint
-    it was matched to, which the matcher found nearest and distinct (ratio test)."""
+    it was matched to, which the matcher found nearest and distinct (ratio test). Those
+    are quick to take again and are not kept: the store holds exact searches alone."""
 
     def __init__(self, descriptors: dict[int, np.ndarray], k: int, max_bytes: int,
                  num_threads: int, matches: dict[tuple[int, int], np.ndarray] | None = None,
@@ -102,6 +103,9 @@ class NearestDescriptors:
     def __call__(self, image_id: int, other_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(index, angles), each (keypoints of image_id, k), nearest first; one column
         for a pair whose candidates are the database's matches."""
+        if self._uses_matches(image_id, other_id):
+            index, angles, _ = self._matched(image_id, other_id, np.zeros(0, np.int64), 0)
+            return index, angles
         self.prefetch(image_id, [other_id])
         self._pairs.move_to_end((image_id, other_id))
         return self._pairs[(image_id, other_id)]
@@ -109,7 +113,8 @@ class NearestDescriptors:
     def prefetch(self, image_id: int, other_ids: list[int]) -> None:
         """Search the pairs (image_id, other) not kept yet, in parallel."""
         missing = [(other_id, np.zeros(0, np.int64)) for other_id in other_ids
-                   if (image_id, other_id) not in self._pairs]
+                   if (image_id, other_id) not in self._pairs
+                   and not self._uses_matches(image_id, other_id)]
         self.search_subsets(image_id, missing, 0)
 
     def search_subsets(self, image_id: int, subsets: list[tuple[int, np.ndarray]],
@@ -126,16 +131,21 @@ class NearestDescriptors:
         else:
             results = [search(other_id, subset) for other_id, subset in subsets]
         for (other_id, _), (index, angles, _) in zip(subsets, results):
-            self._keep((image_id, other_id), index, angles)
+            if not self._uses_matches(image_id, other_id):
+                self._keep((image_id, other_id), index, angles)
         return [found for _, _, found in results]
 
     def _search(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
         """(index, angles) over all of `other_id`, and the k nearest within `subset`."""
-        queries, database = self.descriptors[image_id], self.descriptors[other_id]
-        if self.max_search_pairs is not None and \
-                len(queries) * len(database) > self.max_search_pairs:
+        if self._uses_matches(image_id, other_id):
             return self._matched(image_id, other_id, subset, k)
-        return nearest_descriptors(queries, database, self.k, subset, k)
+        return nearest_descriptors(self.descriptors[image_id], self.descriptors[other_id],
+                                   self.k, subset, k)
+
+    def _uses_matches(self, image_id: int, other_id: int) -> bool:
+        """Whether the pair's exact search would compare more than max_search_pairs."""
+        return self.max_search_pairs is not None and len(self.descriptors[image_id]) * \
+            len(self.descriptors[other_id]) > self.max_search_pairs
 
     def _matched(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
         """As `_search`, from the database's matches of the pair: each matched keypoint's
