@@ -75,6 +75,7 @@ class IncrementalMapper:
         # between rounds and counted again only when a neighbour's observations change.
         self._visible: dict[int, int] = {}
         self._connected: set[int] = set()  # images with raw matches to a registered one
+        self._marked = np.zeros(0, bool)  # scratch for _count_visible, all False
         # Per image, its verified matches as (other image, flat index of the other's
         # keypoint in model.point_of_flat): the points it sees, in one lookup.
         self._matched_keypoints = {
@@ -156,7 +157,15 @@ class IncrementalMapper:
             return 0
         others, flat_index = self._matched_keypoints[image_id]
         points = self.model.point_of_flat[flat_index]
-        return len(np.unique(points[(points >= 0) & is_registered[others]]))
+        points = points[(points >= 0) & is_registered[others]]
+        # Distinct points by marking them in a buffer kept clear between calls: linear,
+        # where sorting them was most of a turntable's candidate choice.
+        if len(self._marked) < len(self.model.xyz):
+            self._marked = np.zeros(len(self.model.xyz), bool)
+        self._marked[points] = True
+        count = int(np.count_nonzero(self._marked))
+        self._marked[points] = False
+        return count
 
     def _neighbours(self, image_id: int, limit: int) -> list[int]:
         """Registered images most connected to `image_id`: shared points, then matches."""
