@@ -231,8 +231,6 @@ def ring_arcs(db, options, monkeypatch) -> tuple[list[Model], dict]:
         for image_id in list(arc.poses):
             if arc.db.images[image_id].name not in arc_names:
                 arc.deregister(image_id)
-        for point_id in [p for p, track in arc.tracks.items() if len(track) < 2]:
-            arc.delete_point(point_id)
         arcs.append(arc)
     return arcs, matches
 

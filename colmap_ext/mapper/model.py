@@ -99,11 +99,10 @@ class Model:
         return self.reconstruction.images[image_id].frame_id
 
     def deregister(self, image_id: int) -> None:
-        """Remove an image's pose and its observations (points keep their other ones)."""
+        """Remove an image's pose and its observations (a point left with one goes)."""
         _, point_ids = self.observations(image_id)
         for point_id in point_ids.tolist():
-            if point_id in self.tracks:
-                self.delete_observation(point_id, image_id)
+            self.delete_observation(point_id, image_id)
         self.reconstruction.deregister_frame(self._frame_id(image_id))
         del self.poses[image_id]
         self.registration_order.remove(image_id)

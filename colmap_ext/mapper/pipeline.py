@@ -158,8 +158,8 @@ class IncrementalMapper:
         others, flat_index = self._matched_keypoints[image_id]
         points = self.model.point_of_flat[flat_index]
         points = points[(points >= 0) & is_registered[others]]
-        # Distinct points by marking them in a buffer kept clear between calls: linear,
-        # where sorting them was most of a turntable's candidate choice.
+        # Distinct points by marking them in a buffer kept clear between calls: linear
+        # in the matches, where a sort is not (every image is counted again each round).
         if len(self._marked) < len(self.model.xyz):
             self._marked = np.zeros(len(self.model.xyz), bool)
         self._marked[points] = True
