@@ -1,7 +1,9 @@
 """Read a COLMAP database into memory without ever writing the user's file.
 
 pycolmap opens a database read-write and upgrades its schema in place, so we read
-from a private copy in a temporary folder and leave the original byte for byte.
+from a private copy in a temporary folder and leave the original byte for byte. The
+descriptors, most of a database's size, stay in that copy and are read per image when
+the mapper asks for them (`DescriptorReader`).
 """
 
 from __future__ import annotations
@@ -9,6 +11,9 @@ from __future__ import annotations
 import shutil
 import sqlite3
 import tempfile
+import threading
+from collections import OrderedDict
+from collections.abc import Iterator, Mapping
 from contextlib import closing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -19,19 +24,73 @@ import pycolmap
 from colmap_ext.errors import UserError
 
 
+# Descriptors kept in memory after reading, the most recently used images' first.
+DESCRIPTOR_CACHE_BYTES = 32 * 2**20
+
+
 @dataclass
 class ImageFeatures:
     image_id: int
     name: str
     camera_id: int
     keypoints: np.ndarray  # (n, 2) pixel coordinates, COLMAP's convention (centre of top-left pixel at 0.5)
-    descriptors: np.ndarray  # (n, 128) uint8
+
+
+class DescriptorReader(Mapping[int, np.ndarray]):
+    """Each image's SIFT descriptors, (n, 128) uint8, read from the private copy of the
+    database when asked; the most recently used are kept up to `max_bytes`. The copy's
+    folder is removed with the reader. Safe to use from several threads."""
+
+    def __init__(self, folder: tempfile.TemporaryDirectory, copy: Path,
+                 num_keypoints: dict[int, int], max_bytes: int = DESCRIPTOR_CACHE_BYTES) -> None:
+        self._folder = folder
+        self._connection = _open_copy(copy)
+        self._num_keypoints = num_keypoints
+        self._max_bytes = max_bytes
+        self._kept: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def __getitem__(self, image_id: int) -> np.ndarray:
+        with self._lock:
+            if image_id in self._kept:
+                self._kept.move_to_end(image_id)
+                return self._kept[image_id]
+            if image_id not in self._num_keypoints:
+                raise KeyError(image_id)
+            row = self._connection.execute(
+                "SELECT rows, cols, data FROM descriptors WHERE image_id = ?", (image_id,)).fetchone()
+            descriptors = np.zeros((0, 128), np.uint8) if row is None or not row[0] else \
+                np.frombuffer(row[2], np.uint8).reshape(row[0], row[1])
+            self._kept[image_id] = descriptors
+            self._bytes += descriptors.nbytes
+            while self._bytes > self._max_bytes and len(self._kept) > 1:
+                self._bytes -= self._kept.popitem(last=False)[1].nbytes
+            return descriptors
+
+    def __iter__(self) -> Iterator[int]:
+        return iter(self._num_keypoints)
+
+    def __len__(self) -> int:
+        return len(self._num_keypoints)
+
+    def __reduce__(self):
+        """Pickled (for a worker process) as the plain dict of every image's descriptors."""
+        return dict, (dict(self.items()),)
+
+
+def _open_copy(copy: Path) -> sqlite3.Connection:
+    """A connection that only reads our copy. pycolmap folds the write-ahead log into the
+    file when it closes the database, and nobody writes the copy after: immutable, so
+    SQLite writes nothing beside it (no shared-memory file) and takes no locks."""
+    return sqlite3.connect(f"{copy.as_uri()}?immutable=1", uri=True, check_same_thread=False)
 
 
 @dataclass
 class DatabaseContents:
     cameras: dict[int, pycolmap.Camera]
     images: dict[int, ImageFeatures]
+    descriptors: Mapping[int, np.ndarray]  # image_id -> (n, 128) uint8, as keypoints
     # (image_id1, image_id2) with id1 < id2 -> (m, 2) keypoint indices into image1, image2
     verified_matches: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
     raw_matches: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
@@ -95,11 +154,13 @@ def _check_tables(copy: Path, path: Path) -> None:
 
 
 def read_database(path: str | Path) -> DatabaseContents:
-    """Cameras, images with keypoints and descriptors, and matches, from a copy of `path`."""
+    """Cameras, images with keypoints, and matches, from a copy of `path`; the
+    descriptors are read from that copy when asked for (DescriptorReader)."""
     path = Path(path)
     check_database_file(path)
-    with tempfile.TemporaryDirectory(prefix="colmap-ext-db-") as tmp:
-        copy = Path(tmp) / "database.db"
+    folder = tempfile.TemporaryDirectory(prefix="colmap-ext-db-")
+    try:
+        copy = Path(folder.name) / "database.db"
         copy_database(path, copy)
         _check_tables(copy, path)
         try:
@@ -107,9 +168,16 @@ def read_database(path: str | Path) -> DatabaseContents:
         except Exception as exc:  # pycolmap raises plain RuntimeError/ValueError on bad schemas
             raise UserError(f"cannot open database {path}: {exc}") from None
         try:
-            return _read_open_database(db, path)
+            contents = _read_open_database(db, path)
         finally:
             db.close()
+        _check_descriptors(copy, contents, path)
+        contents.descriptors = DescriptorReader(folder, copy, {
+            image_id: len(image.keypoints) for image_id, image in contents.images.items()})
+        return contents
+    except BaseException:
+        folder.cleanup()
+        raise
 
 
 def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
@@ -121,12 +189,9 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
                             f"which is not in the database {path}")
         keypoints = db.read_keypoints(image.image_id) if db.exists_keypoints(image.image_id) \
             else np.zeros((0, 2), np.float32)
-        descriptors = db.read_descriptors(image.image_id).data \
-            if db.exists_descriptors(image.image_id) else np.zeros((0, 128), np.uint8)
         images[image.image_id] = ImageFeatures(
             image.image_id, image.name, image.camera_id,
-            np.asarray(keypoints[:, :2], dtype=np.float64),
-            np.asarray(descriptors, dtype=np.uint8))
+            np.asarray(keypoints[:, :2], dtype=np.float64))
     if not images:
         raise UserError(f"the database has no images: {path}")
     for camera in cameras.values():
@@ -137,7 +202,7 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
     if sum(len(image.keypoints) for image in images.values()) == 0:
         raise UserError(f"the database has no keypoints: {path} (run feature extraction first)")
 
-    contents = DatabaseContents(cameras, images)
+    contents = DatabaseContents(cameras, images, {})
     # Keypoint indices as int32, each pair's read arrays released once converted: on
     # long turntables (every pair matched) the matches are most of the memory.
     pair_ids, geometries = db.read_two_view_geometries()
@@ -182,3 +247,16 @@ def _check_match_indices(contents: DatabaseContents, path: Path) -> None:
             if len(matches) and (matches[:, 0].max() >= n1 or matches[:, 1].max() >= n2):
                 raise UserError(f"matches between images {id1} and {id2} refer to keypoints "
                                 f"that do not exist in {path}")
+
+
+def _check_descriptors(copy: Path, contents: DatabaseContents, path: Path) -> None:
+    """Every image's descriptors are uint8 SIFT, one per keypoint."""
+    with closing(_open_copy(copy)) as conn:
+        shapes = {image_id: (rows, cols, size) for image_id, rows, cols, size in conn.execute(
+            "SELECT image_id, rows, cols, length(data) FROM descriptors")}
+    for image_id, image in contents.images.items():
+        rows, cols, size = shapes.get(image_id, (0, 128, 0))
+        if rows != len(image.keypoints) or (rows and (cols != 128 or size != rows * cols)):
+            raise UserError(f"image {image.name} in {path} has {rows} descriptors of {cols} "
+                            f"values for {len(image.keypoints)} keypoints; expected one SIFT "
+                            "descriptor (128 values) per keypoint")

@@ -207,6 +207,7 @@ def database_subset(db: DatabaseContents, image_ids: list[int]) -> DatabaseConte
     images = {i: db.images[i] for i in image_ids}
     return DatabaseContents(
         {c: db.cameras[c] for c in {image.camera_id for image in images.values()}}, images,
+        {i: db.descriptors[i] for i in image_ids},
         {p: m for p, m in db.verified_matches.items() if p[0] in keep and p[1] in keep},
         {p: m for p, m in db.raw_matches.items() if p[0] in keep and p[1] in keep})
 

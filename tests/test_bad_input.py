@@ -465,6 +465,13 @@ def _(env):
     return env.mapper(database)
 
 
+@case("db_descriptors_not_one_per_keypoint", "expected one SIFT descriptor (128 values) per keypoint")
+def _(env):
+    return env.mapper(edit_database(
+        env.small_db(), "UPDATE descriptors SET rows = rows - 1, data = substr(data, 1, (rows - 1) * cols) "
+        "WHERE image_id = (SELECT MIN(image_id) FROM descriptors)"))
+
+
 @case("db_image_without_camera", "which is not in the database")
 def _(env):
     return env.mapper(edit_database(env.small_db(), "DELETE FROM cameras"))

@@ -4,13 +4,16 @@ triangulation-angle filter."""
 
 from __future__ import annotations
 
+import gc
+import pickle
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pycolmap
 import pytest
 
-from colmap_ext.database import read_database
+from colmap_ext.database import DescriptorReader, read_database
 from colmap_ext.mapper import MapperOptions, descriptors
 from colmap_ext.mapper.descriptors import NearestDescriptors, nearest_descriptors, unit_descriptors
 from colmap_ext.mapper.guided_matching import compatible_features
@@ -22,6 +25,10 @@ from colmap_ext.synthetic.scene import ring_scene
 
 def random_sift(rng: np.random.Generator, n: int) -> np.ndarray:
     return rng.integers(0, 120, (n, 128)).astype(np.uint8)
+
+
+def sizes(features) -> dict[int, int]:
+    return {image_id: len(d) for image_id, d in features.items()}
 
 
 def brute_force_nearest(queries: np.ndarray, database: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
@@ -49,7 +56,7 @@ def test_blocked_search_is_the_exact_k_nearest(small_blocks) -> None:
 def test_pair_store_gives_the_exact_nearest_over_all_and_over_subsets(small_blocks, num_threads) -> None:
     rng = np.random.default_rng(1)
     features = {i: random_sift(rng, n) for i, n in ((1, 60), (2, 50), (3, 40))}
-    store = NearestDescriptors(features, k=3, max_bytes=2**30, num_threads=num_threads)
+    store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2**30, num_threads=num_threads)
     subsets = [(2, np.array([4, 9, 17, 30, 41])), (3, np.arange(0, 40, 3))]
     found = store.search_subsets(1, subsets, k=2)
     for (other_id, subset), (index, angles) in zip(subsets, found):
@@ -67,7 +74,7 @@ def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
     rng = np.random.default_rng(2)
     features = {i: random_sift(rng, 100) for i in range(4)}
     one_pair = 100 * 3 * (4 + 4)  # int32 indices and float32 angles
-    store = NearestDescriptors(features, k=3, max_bytes=2 * one_pair, num_threads=2)
+    store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2 * one_pair, num_threads=2)
     store.prefetch(0, [1, 2, 3])
     assert list(store._pairs) == [(0, 2), (0, 3)]
     assert store._bytes == 2 * one_pair
@@ -83,7 +90,7 @@ def test_pairs_beyond_the_search_budget_take_the_database_matches() -> None:
     rng = np.random.default_rng(3)
     features = {1: random_sift(rng, 30), 2: random_sift(rng, 20)}
     matches = {(1, 2): np.array([[0, 5], [7, 2], [29, 19]], np.int32)}
-    store = NearestDescriptors(features, k=3, max_bytes=2**30, num_threads=1,
+    store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2**30, num_threads=1,
                                matches=matches, max_search_pairs=30 * 20 - 1)
     for image_id, other_id, pairs in ((1, 2, matches[(1, 2)]), (2, 1, matches[(1, 2)][:, ::-1])):
         index, angles = store(image_id, other_id)
@@ -100,9 +107,38 @@ def test_pairs_beyond_the_search_budget_take_the_database_matches() -> None:
     assert sub_index.shape == (30, 2)
     assert (sub_index[[7, 29], 0] == [0, 1]).all()
     assert np.isfinite(sub_angles[:, 0]).sum() == 2 and np.isinf(sub_angles[:, 1]).all()
-    searched = NearestDescriptors(features, k=3, max_bytes=2**30, num_threads=1,
+    searched = NearestDescriptors(features, sizes(features), k=3, max_bytes=2**30, num_threads=1,
                                   matches=matches, max_search_pairs=30 * 20)
     assert (searched(1, 2)[0] == brute_force_nearest(features[1], features[2], 3)[0]).all()
+
+
+def test_descriptors_are_read_from_the_database_copy_when_asked(tmp_path) -> None:
+    """The reader gives each image's descriptors as pycolmap reads them, keeps no more
+    than its memory allows (the newest image at least), pickles as the plain dict of
+    them, and removes its copy of the database with itself."""
+    scene = ring_scene(num_images=6, seed=0)
+    write_synthetic_database(tmp_path / "database.db", scene,
+                             scene_points(scene, 600, seed=0), seed=0)
+    db = read_database(tmp_path / "database.db")
+    reader = db.descriptors
+    assert isinstance(reader, DescriptorReader) and sorted(reader) == sorted(db.images)
+    database = pycolmap.Database.open(tmp_path / "database.db")
+    expected = {i: database.read_descriptors(i).data for i in db.images}
+    database.close()
+    one_image = max(d.nbytes for d in expected.values())
+    reader._max_bytes = 2 * one_image
+    for image_id in db.images:
+        assert (reader[image_id] == expected[image_id]).all()
+        assert reader[image_id].shape == (len(db.images[image_id].keypoints), 128)
+        assert reader._bytes <= 2 * one_image and image_id in reader._kept
+    assert len(reader._kept) < len(db.images)
+    copied = pickle.loads(pickle.dumps(reader))
+    assert type(copied) is dict and all((copied[i] == expected[i]).all() for i in expected)
+    folder = Path(reader._folder.name)
+    assert (folder / "database.db").is_file()
+    del db, reader
+    gc.collect()
+    assert not folder.exists()
 
 
 def brute_force_widest_angle_deg(model, point_id: int) -> float:
@@ -140,7 +176,7 @@ def test_guided_matching_finds_the_true_correspondences(tmp_path) -> None:
     db = read_database(tmp_path / "database.db")
     options = MapperOptions()
     first, second = truth.image_ids[0], truth.image_ids[1]
-    store = NearestDescriptors({i: db.images[i].descriptors for i in db.images},
+    store = NearestDescriptors(db.descriptors, sizes(db.descriptors),
                                options.guided_matching.num_neighbors, 2**26, num_threads=2)
     model = Model(db, store)
     for view, image_id in enumerate(truth.image_ids[:2]):

@@ -6,7 +6,7 @@ compare too many keypoint pairs, the database's matches stand in for it."""
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -88,10 +88,12 @@ class NearestDescriptors:
     it was matched to, which the matcher found nearest and distinct (ratio test). Those
     are quick to take again and are not kept: the store holds exact searches alone."""
 
-    def __init__(self, descriptors: dict[int, np.ndarray], k: int, max_bytes: int,
-                 num_threads: int, matches: dict[tuple[int, int], np.ndarray] | None = None,
+    def __init__(self, descriptors: Mapping[int, np.ndarray], num_keypoints: Mapping[int, int],
+                 k: int, max_bytes: int, num_threads: int,
+                 matches: dict[tuple[int, int], np.ndarray] | None = None,
                  max_search_pairs: int | None = None) -> None:
-        self.descriptors = descriptors
+        self.descriptors = descriptors  # read when a search needs them (DescriptorReader)
+        self.num_keypoints = num_keypoints
         self.k = k
         self.max_bytes = max_bytes
         self.num_threads = max(1, num_threads)
@@ -144,8 +146,8 @@ class NearestDescriptors:
 
     def _uses_matches(self, image_id: int, other_id: int) -> bool:
         """Whether the pair's exact search would compare more than max_search_pairs."""
-        return self.max_search_pairs is not None and len(self.descriptors[image_id]) * \
-            len(self.descriptors[other_id]) > self.max_search_pairs
+        return self.max_search_pairs is not None and self.num_keypoints[image_id] * \
+            self.num_keypoints[other_id] > self.max_search_pairs
 
     def _matched(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
         """As `_search`, from the database's matches of the pair: each matched keypoint's
@@ -158,7 +160,7 @@ class NearestDescriptors:
         kps, other_kps = pairs[:, 0], pairs[:, 1].astype(np.int64)
         cosines = np.einsum("ij,ij->i", unit_descriptors(self.descriptors[image_id][kps]),
                             unit_descriptors(self.descriptors[other_id][other_kps]))
-        num_queries = len(self.descriptors[image_id])
+        num_queries = self.num_keypoints[image_id]
 
         def candidates(found: np.ndarray, targets: np.ndarray,
                        columns: int) -> tuple[np.ndarray, np.ndarray]:
@@ -170,7 +172,7 @@ class NearestDescriptors:
             return index, angles
 
         index, angles = candidates(np.ones(len(kps), bool), other_kps, 1)
-        position = np.full(len(self.descriptors[other_id]), -1, np.int64)
+        position = np.full(self.num_keypoints[other_id], -1, np.int64)
         position[subset] = np.arange(len(subset))
         in_subset = position[other_kps] >= 0
         sub_index, sub_angles = candidates(in_subset, position[other_kps[in_subset]],

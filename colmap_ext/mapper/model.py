@@ -29,7 +29,7 @@ class Model:
         self.keypoints: dict[int, np.ndarray] = {}
         self.normalized: dict[int, np.ndarray] = {}
         self.rays: dict[int, np.ndarray] = {}
-        self.descriptors: dict[int, np.ndarray] = {}
+        self.descriptors = db.descriptors  # read when asked: see database.DescriptorReader
         # point_of[image_id] is a view of one array over every image's keypoints, which
         # looks up the points of many images' keypoints at once (flat_offset + keypoint).
         sizes = [len(db.images[image_id].keypoints) for image_id in self.image_ids]
@@ -40,7 +40,6 @@ class Model:
         for image_id, start, stop in zip(self.image_ids, starts[:-1], starts[1:]):
             image = db.images[image_id]
             self.keypoints[image_id] = image.keypoints
-            self.descriptors[image_id] = image.descriptors
             self.point_of[image_id] = self.point_of_flat[start:stop]
             self._compute_rays(image_id)
         self.reconstruction = pycolmap.Reconstruction()

@@ -76,11 +76,15 @@ class IncrementalMapper:
         self._visible: dict[int, int] = {}
         self._connected: set[int] = set()  # images with raw matches to a registered one
         self._marked = np.zeros(0, bool)  # scratch for _count_visible, all False
-        # Per image, its verified matches as (other image, flat index of the other's
-        # keypoint in model.point_of_flat): the points it sees, in one lookup.
+        # Per image, its verified matches as the other images, their numbers of matches,
+        # and each match's keypoint of the other image as a flat index into
+        # model.point_of_flat: the points it sees, in one lookup. Four bytes a match: on
+        # a turntable, where every image matches every other, this is gigabytes in int64.
+        flat_type = np.int32 if len(model.point_of_flat) < 2**31 else np.int64
         self._matched_keypoints = {
-            image_id: (np.concatenate([np.full(len(m), other) for other, m in pairs.items()]),
-                       np.concatenate([model.flat_offset[other] + m[:, 1].astype(np.int64)
+            image_id: (np.fromiter(pairs, np.int64, len(pairs)),
+                       np.array([len(m) for m in pairs.values()]),
+                       np.concatenate([m[:, 1].astype(flat_type) + model.flat_offset[other]
                                        for other, m in pairs.items()]))
             for image_id, pairs in self.graph.items() if pairs}
 
@@ -155,9 +159,9 @@ class IncrementalMapper:
         (as track_correspondences finds them, counted once each)."""
         if image_id not in self._matched_keypoints:
             return 0
-        others, flat_index = self._matched_keypoints[image_id]
+        others, num_matches, flat_index = self._matched_keypoints[image_id]
         points = self.model.point_of_flat[flat_index]
-        points = points[(points >= 0) & is_registered[others]]
+        points = points[(points >= 0) & np.repeat(is_registered[others], num_matches)]
         # Distinct points by marking them in a buffer kept clear between calls: linear
         # in the matches, where a sort is not (every image is counted again each round).
         if len(self._marked) < len(self.model.xyz):
@@ -265,7 +269,8 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     timer = timer or StageTimer()
     existing_ids = _existing_image_ids(db, existing) if existing is not None else {}
     image_ids = sorted(set(_select_images(db, image_names)) | set(existing_ids.values()))
-    nearest = NearestDescriptors({i: db.images[i].descriptors for i in image_ids},
+    nearest = NearestDescriptors(db.descriptors,
+                                 {i: len(db.images[i].keypoints) for i in image_ids},
                                  options.guided_matching.num_neighbors, NEAREST_DESCRIPTORS_BYTES,
                                  options.threads(), db.raw_matches,
                                  options.guided_matching.max_search_pairs)

@@ -32,7 +32,7 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
                                options: MapperOptions) -> tuple[np.ndarray, np.ndarray]:
     """(keypoints, point ids) by matching descriptors against the observations of
     points in nearby registered images, with the ratio test."""
-    if len(model.descriptors[image_id]) == 0:
+    if len(model.keypoints[image_id]) == 0:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     observed = [(other_id, *model.observations(other_id)) for other_id in neighbours]
     observed = [o for o in observed if len(o[1]) >= 2]
