@@ -41,11 +41,11 @@ class DescriptorReader(Mapping[int, np.ndarray]):
     database when asked; the most recently used are kept up to `max_bytes`. The copy's
     folder is removed with the reader. Safe to use from several threads."""
 
-    def __init__(self, folder: tempfile.TemporaryDirectory, copy: Path,
-                 num_keypoints: dict[int, int], max_bytes: int = DESCRIPTOR_CACHE_BYTES) -> None:
+    def __init__(self, folder: tempfile.TemporaryDirectory, copy: Path, image_ids: list[int],
+                 max_bytes: int = DESCRIPTOR_CACHE_BYTES) -> None:
         self._folder = folder
         self._connection = _open_copy(copy)
-        self._num_keypoints = num_keypoints
+        self._image_ids = dict.fromkeys(image_ids)  # ordered, and quick to look up
         self._max_bytes = max_bytes
         self._kept: OrderedDict[int, np.ndarray] = OrderedDict()
         self._bytes = 0
@@ -56,7 +56,7 @@ class DescriptorReader(Mapping[int, np.ndarray]):
             if image_id in self._kept:
                 self._kept.move_to_end(image_id)
                 return self._kept[image_id]
-            if image_id not in self._num_keypoints:
+            if image_id not in self._image_ids:
                 raise KeyError(image_id)
             row = self._connection.execute(
                 "SELECT rows, cols, data FROM descriptors WHERE image_id = ?", (image_id,)).fetchone()
@@ -69,10 +69,10 @@ class DescriptorReader(Mapping[int, np.ndarray]):
             return descriptors
 
     def __iter__(self) -> Iterator[int]:
-        return iter(self._num_keypoints)
+        return iter(self._image_ids)
 
     def __len__(self) -> int:
-        return len(self._num_keypoints)
+        return len(self._image_ids)
 
     def __reduce__(self):
         """Pickled (for a worker process) as the plain dict of every image's descriptors."""
@@ -90,7 +90,7 @@ def _open_copy(copy: Path) -> sqlite3.Connection:
 class DatabaseContents:
     cameras: dict[int, pycolmap.Camera]
     images: dict[int, ImageFeatures]
-    descriptors: Mapping[int, np.ndarray]  # image_id -> (n, 128) uint8, as keypoints
+    descriptors: Mapping[int, np.ndarray]  # image_id -> (n, 128) uint8, one per keypoint
     # (image_id1, image_id2) with id1 < id2 -> (m, 2) keypoint indices into image1, image2
     verified_matches: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
     raw_matches: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
@@ -172,8 +172,7 @@ def read_database(path: str | Path) -> DatabaseContents:
         finally:
             db.close()
         _check_descriptors(copy, contents, path)
-        contents.descriptors = DescriptorReader(folder, copy, {
-            image_id: len(image.keypoints) for image_id, image in contents.images.items()})
+        contents.descriptors = DescriptorReader(folder, copy, list(contents.images))
         return contents
     except BaseException:
         folder.cleanup()
