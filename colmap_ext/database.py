@@ -44,7 +44,11 @@ class DescriptorReader(Mapping[int, np.ndarray]):
     def __init__(self, folder: tempfile.TemporaryDirectory, copy: Path, image_ids: list[int],
                  max_bytes: int = DESCRIPTOR_CACHE_BYTES) -> None:
         self._folder = folder
-        self._connection = _open_copy(copy)
+        # Read only: pycolmap folds the write-ahead log into the file when it closes the
+        # database, and nobody writes the copy after. Immutable, so SQLite writes nothing
+        # beside it (no shared-memory file, which a full disk would refuse) and takes no locks.
+        self._connection = sqlite3.connect(f"{copy.as_uri()}?immutable=1", uri=True,
+                                           check_same_thread=False)
         self._image_ids = dict.fromkeys(image_ids)  # ordered, and quick to look up
         self._max_bytes = max_bytes
         self._kept: OrderedDict[int, np.ndarray] = OrderedDict()
@@ -68,6 +72,13 @@ class DescriptorReader(Mapping[int, np.ndarray]):
                 self._bytes -= self._kept.popitem(last=False)[1].nbytes
             return descriptors
 
+    def shapes(self) -> dict[int, tuple[int, int, int]]:
+        """image id -> (rows, columns, bytes) of each stored descriptor array."""
+        with self._lock:
+            return {image_id: (rows, cols, size) for image_id, rows, cols, size in
+                    self._connection.execute(
+                        "SELECT image_id, rows, cols, length(data) FROM descriptors")}
+
     def __iter__(self) -> Iterator[int]:
         return iter(self._image_ids)
 
@@ -77,13 +88,6 @@ class DescriptorReader(Mapping[int, np.ndarray]):
     def __reduce__(self):
         """Pickled (for a worker process) as the plain dict of every image's descriptors."""
         return dict, (dict(self.items()),)
-
-
-def _open_copy(copy: Path) -> sqlite3.Connection:
-    """A connection that only reads our copy. pycolmap folds the write-ahead log into the
-    file when it closes the database, and nobody writes the copy after: immutable, so
-    SQLite writes nothing beside it (no shared-memory file) and takes no locks."""
-    return sqlite3.connect(f"{copy.as_uri()}?immutable=1", uri=True, check_same_thread=False)
 
 
 @dataclass
@@ -171,8 +175,8 @@ def read_database(path: str | Path) -> DatabaseContents:
             contents = _read_open_database(db, path)
         finally:
             db.close()
-        _check_descriptors(copy, contents, path)
         contents.descriptors = DescriptorReader(folder, copy, list(contents.images))
+        _check_descriptors(contents, path)
         return contents
     except BaseException:
         folder.cleanup()
@@ -248,11 +252,9 @@ def _check_match_indices(contents: DatabaseContents, path: Path) -> None:
                                 f"that do not exist in {path}")
 
 
-def _check_descriptors(copy: Path, contents: DatabaseContents, path: Path) -> None:
+def _check_descriptors(contents: DatabaseContents, path: Path) -> None:
     """Every image's descriptors are uint8 SIFT, one per keypoint."""
-    with closing(_open_copy(copy)) as conn:
-        shapes = {image_id: (rows, cols, size) for image_id, rows, cols, size in conn.execute(
-            "SELECT image_id, rows, cols, length(data) FROM descriptors")}
+    shapes = contents.descriptors.shapes()
     for image_id, image in contents.images.items():
         rows, cols, size = shapes.get(image_id, (0, 128, 0))
         if rows != len(image.keypoints) or (rows and (cols != 128 or size != rows * cols)):
