@@ -342,7 +342,12 @@ def real_databases(tmp_path_factory, real_data):
                                options=reader)
         pycolmap.extract_features(database, images, camera_mode=pycolmap.CameraMode.SINGLE,
                                   reader_options=reader, device=pycolmap.Device.cpu)
-        pycolmap.match_exhaustive(database, device=pycolmap.Device.cpu)
+        # Seeded verification: pycolmap's RANSAC otherwise draws anew each run, and the
+        # inlier sets it stores (so the mapper's input) change from run to run.
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.ransac.random_seed = 0
+        pycolmap.match_exhaustive(database, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
         databases[name] = (database, images, truth)
     return databases
 
