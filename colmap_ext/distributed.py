@@ -401,8 +401,8 @@ class MatchedPair:
 
 def match_and_verify(pairs: Sequence[tuple[int, int]], features: dict[int, Features],
                      cameras: dict[int, pycolmap.Camera], names: dict[int, str],
-                     max_ratio: float, max_error_px: float,
-                     seed: int | None) -> tuple[list[MatchedPair], float, float]:
+                     max_ratio: float, max_error_px: float, seed: int | None,
+                     exact: bool) -> tuple[list[MatchedPair], float, float]:
     """Match the pairs as match_features does (pycolmap's matching pipeline, here on a
     scratch database of the pairs' images under their own ids), then verify each with
     matching.two_view_geometry. Returns the pairs and the seconds spent in each step."""
@@ -419,7 +419,7 @@ def match_and_verify(pairs: Sequence[tuple[int, int]], features: dict[int, Featu
                 db.write_keypoints(image_id, keypoints)
                 db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
                     pycolmap.FeatureExtractorType.SIFT, descriptors))
-        options = single_matching.matching_options(max_ratio)
+        options = single_matching.matching_options(max_ratio, exact)
         options.num_threads = 1
         with quiet_colmap_logs():
             single_matching.match_pairs(database_path, [(names[a], names[b]) for a, b in pairs], options)
@@ -444,20 +444,22 @@ def match_and_verify(pairs: Sequence[tuple[int, int]], features: dict[int, Featu
 
 def match_block(pairs: list[tuple[int, int]], feature_refs: dict[int, Any],
                 cameras: dict[int, pycolmap.Camera], names: dict[int, str], max_ratio: float,
-                max_error_px: float, seed: int | None) -> tuple[list[MatchedPair], float, float]:
+                max_error_px: float, seed: int | None,
+                exact: bool) -> tuple[list[MatchedPair], float, float]:
     """The task: fetch the features of the block's images from the object store, then
     match_and_verify."""
     import ray
 
     ids = list(feature_refs)
     features = dict(zip(ids, ray.get([feature_refs[i] for i in ids])))
-    return match_and_verify(pairs, features, cameras, names, max_ratio, max_error_px, seed)
+    return match_and_verify(pairs, features, cameras, names, max_ratio, max_error_px, seed,
+                            exact)
 
 
 def match_features(cluster: Cluster, database_path: str | os.PathLike, *,
                    matcher: str = "auto", overlap: int = 10, loop_closure: bool = True,
                    max_ratio: float = 0.8, max_error_px: float = 4.0, seed: int | None = 0,
-                   progress: bool = True) -> MatchingSummary:
+                   exact: bool = False, progress: bool = True) -> MatchingSummary:
     """matching.match_features on the cluster: the same pairs, matches and two-view
     geometries, each block of pairs matched and verified by a task, written here."""
     single_matching.check_options(matcher, overlap, max_ratio, max_error_px, seed)
@@ -485,7 +487,8 @@ def match_features(cluster: Cluster, database_path: str | os.PathLike, *,
             needed = sorted({i for pair in task for i in pair})
             arguments.append((task, {i: refs[i] for i in needed},
                               {i: camera_of[images[i].camera_id] for i in needed},
-                              {i: names[i] for i in needed}, max_ratio, max_error_px, seed))
+                              {i: names[i] for i in needed}, max_ratio, max_error_px, seed,
+                              exact))
         results: list[Any] = []
         worker_seconds = np.zeros(2)
         for matched, match_s, verify_s in cluster.run(match_block, arguments, len(arguments),
@@ -533,8 +536,8 @@ def extract_and_match(cluster: Cluster, database_path: Path, image_path: str | o
                       times: dict[str, float], *, camera_model: str,
                       camera_params: Sequence[float], camera_mode: str,
                       mask_path: str | os.PathLike | None, min_num_keypoints: int,
-                      image_names: Sequence[str], matcher: str,
-                      seed: int | None) -> tuple[FeatureSummary, MatchingSummary, dict]:
+                      image_names: Sequence[str], matcher: str, seed: int | None,
+                      exact_matching: bool) -> tuple[FeatureSummary, MatchingSummary, dict]:
     """Features and matching on the cluster into a staging database that replaces
     `database_path` once both are done; records the stages' seconds in `times` and
     returns both summaries and what the cluster was (nodes, CPUs, how images went)."""
@@ -546,7 +549,8 @@ def extract_and_match(cluster: Cluster, database_path: Path, image_path: str | o
                                     mask_path=mask_path, min_num_keypoints=min_num_keypoints,
                                     image_names=image_names, by_path=by_path)
         times["features"] = time.perf_counter() - start
-        matching = match_features(cluster, staging, matcher=matcher, seed=seed)
+        matching = match_features(cluster, staging, matcher=matcher, seed=seed,
+                                  exact=exact_matching)
     return features, matching, {"num_nodes": len(cluster.node_ids()),
                                 "num_cpus": cluster.num_cpus,
                                 "images": "by path" if by_path else "as bytes"}

@@ -78,12 +78,13 @@ class MatchingSummary:
 
 def match_features(database_path: str | os.PathLike, *, matcher: str = "auto",
                    overlap: int = 10, loop_closure: bool = True, max_ratio: float = 0.8,
-                   max_error_px: float = 4.0, seed: int | None = 0,
+                   max_error_px: float = 4.0, seed: int | None = 0, exact: bool = False,
                    progress: bool = True) -> MatchingSummary:
     """Match the database's features and verify every new pair with known intrinsics.
 
     `max_error_px` is the Sampson error threshold of the verification, in pixels
-    (COLMAP's default, 4); `seed` makes the RANSAC of every pair reproducible.
+    (COLMAP's default, 4); `seed` makes the RANSAC of every pair reproducible; `exact`
+    searches descriptors by brute force (see matching_options).
     """
     check_options(matcher, overlap, max_ratio, max_error_px, seed)
     database_path = Path(database_path)
@@ -91,7 +92,7 @@ def match_features(database_path: str | os.PathLike, *, matcher: str = "auto",
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= AUTO_EXHAUSTIVE_MAX_IMAGES else "sequential"
     start = time.perf_counter()
-    options = matching_options(max_ratio)
+    options = matching_options(max_ratio, exact)
     with quiet_colmap_logs():
         if matcher == "exhaustive":
             pycolmap.match_exhaustive(database_path, matching_options=options,
@@ -143,13 +144,20 @@ def image_names(database_path: Path) -> list[str]:
         db.close()
 
 
-def matching_options(max_ratio: float) -> pycolmap.FeatureMatchingOptions:
-    """SIFT matching with ratio test and cross-check, leaving verification to us."""
+def matching_options(max_ratio: float, exact: bool) -> pycolmap.FeatureMatchingOptions:
+    """SIFT matching with ratio test and cross-check, leaving verification to us.
+
+    `exact`: brute-force nearest neighbours (COLMAP's cpu_brute_force_matcher), the same
+    matches on every run and machine. Otherwise pycolmap's FAISS index, which is
+    approximate and, rarely, not built the same twice (colmap/colmap#3874), but far
+    faster and lighter on large images.
+    """
     options = pycolmap.FeatureMatchingOptions()
     options.skip_geometric_verification = True
     options.num_threads = os.cpu_count() or 1
     options.sift.max_ratio = max_ratio
     options.sift.cross_check = True
+    options.sift.cpu_brute_force_matcher = exact
     return options
 
 

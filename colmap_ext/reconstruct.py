@@ -54,6 +54,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matcher", choices=MATCHERS, default="auto",
                         help="auto: exhaustive up to 100 images, sequential (with loop "
                              "closure) beyond")
+    parser.add_argument("--exact_matching", action="store_true",
+                        help="brute-force descriptor search (COLMAP's "
+                             "SiftMatching.cpu_brute_force_matcher): the same matches on every "
+                             "run and machine, but far slower on large images")
     parser.add_argument("--seed", type=int, default=None,
                         help="RANSAC seed, for repeatable runs (default: random, recorded "
                              "in the summary)")
@@ -64,13 +68,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--ray_address", default=None,
                         help="extract and match on a Ray cluster: auto (the running cluster), "
                              "local (start one here) or HOST:PORT; the same database as "
-                             "without it")
+                             "without it (row for row with --exact_matching)")
 
 
 def main(image_path: str, workspace_path: str, camera_model: str, camera_params: str,
          camera_mode: str = "single", mask_path: str | None = None, segment: str | None = None,
          min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS, matcher: str = "auto",
-         seed: int | None = None, overwrite: bool = False, output_type: str = "BIN",
+         exact_matching: bool = False, seed: int | None = None, overwrite: bool = False, output_type: str = "BIN",
          ray_address: str | None = None) -> dict:
     """Run masks (optional), features, matching and the mapper; returns the summary.
     With `ray_address`, features and matching run as tasks on that Ray cluster
@@ -84,15 +88,15 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
                                  overwrite, output_type)
     with distributed.optional_cluster(ray_address) as cluster:
         return run_stages(image_path, workspace, camera_model, camera_mode, mask_path, segment,
-                          min_num_keypoints, matcher, seed, overwrite, output_type, names,
-                          params, cluster, start)
+                          min_num_keypoints, matcher, exact_matching, seed, overwrite,
+                          output_type, names, params, cluster, start)
 
 
 def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode: str,
                mask_path: str | None, segment: str | None, min_num_keypoints: int,
-               matcher: str, seed: int | None, overwrite: bool, output_type: str,
-               names: list[str], params: list[float], cluster: distributed.Cluster | None,
-               start: float) -> dict:
+               matcher: str, exact_matching: bool, seed: int | None, overwrite: bool,
+               output_type: str, names: list[str], params: list[float],
+               cluster: distributed.Cluster | None, start: float) -> dict:
     """The stages of `main` once the inputs are checked; `cluster`: where features and
     matching run (None: here)."""
     seed = secrets.randbits(31) if seed is None else seed
@@ -103,7 +107,8 @@ def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode:
         "image_path": str(image_path), "camera_model": camera_model,
         "camera_params": params, "camera_mode": camera_mode,
         "mask_path": mask_path, "segment": segment, "min_num_keypoints": min_num_keypoints,
-        "matcher": matcher, "seed": seed, "num_images": len(names)}}
+        "matcher": matcher, "exact_matching": exact_matching, "seed": seed,
+        "num_images": len(names)}}
 
     if segment is not None:
         mask_path = str(workspace / "masks")
@@ -116,12 +121,14 @@ def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode:
                                         camera_params=params, camera_mode=camera_mode,
                                         mask_path=mask_path, min_num_keypoints=min_num_keypoints,
                                         image_names=names)
-        matching = match_features(database_path, matcher=matcher, seed=seed)
+        matching = match_features(database_path, matcher=matcher, seed=seed,
+                                  exact=exact_matching)
     else:
         features, matching, summary["ray"] = distributed.extract_and_match(
             cluster, database_path, image_path, times, camera_model=camera_model,
             camera_params=params, camera_mode=camera_mode, mask_path=mask_path,
-            min_num_keypoints=min_num_keypoints, image_names=names, matcher=matcher, seed=seed)
+            min_num_keypoints=min_num_keypoints, image_names=names, matcher=matcher, seed=seed,
+            exact_matching=exact_matching)
     summary["features"] = features.to_dict()
     times["matching"] = matching.matching_seconds
     times["verification"] = matching.verification_seconds

@@ -138,14 +138,56 @@ def test_verified_geometry_matches_the_true_relative_pose(scene_database, tmp_pa
 
 
 def test_same_seed_same_result(scene_database, tmp_path: Path) -> None:
+    """Exact matching (FAISS's index is rarely not built the same twice) and one seed:
+    the same inliers on every run."""
     source, _ = scene_database
     results = []
     for run in range(2):
         database_path = tmp_path / f"run{run}.db"
         shutil.copy(source, database_path)
-        results.append(match_features(database_path, matcher="exhaustive", seed=7,
+        results.append(match_features(database_path, matcher="exhaustive", seed=7, exact=True,
                                       progress=False).pairs)
     assert results[0] == results[1]
+
+
+def brute_force_matches(descriptors1: np.ndarray, descriptors2: np.ndarray,
+                        max_ratio: float = 0.8, max_distance: float = 0.7) -> set[tuple[int, int]]:
+    """SIFT matching by definition: angular distance of the stored descriptors (unit
+    length times 512), ratio test, distance bound and cross-check."""
+    dot = descriptors1.astype(np.int64) @ descriptors2.astype(np.int64).T
+    distance = np.arccos(np.minimum(dot / 512.0**2, 1.0))
+
+    def nearest(d: np.ndarray) -> np.ndarray:
+        order = np.argsort(d, axis=1)[:, :2]
+        rows = np.arange(len(d))
+        best, second = d[rows, order[:, 0]], d[rows, order[:, 1]]
+        return np.where((best <= max_distance) & (best < max_ratio * second), order[:, 0], -1)
+
+    forward, backward = nearest(distance), nearest(distance.T)
+    mutual = [i for i in np.flatnonzero(forward >= 0) if backward[forward[i]] == i]
+    return {(int(i), int(forward[i])) for i in mutual}
+
+
+def test_exact_matching_finds_the_nearest_neighbours(scene_database, tmp_path: Path) -> None:
+    """--exact_matching: every pair's matches are those of a brute-force search."""
+    source, _ = scene_database
+    database_path = tmp_path / "database.db"
+    shutil.copy(source, database_path)
+    match_features(database_path, matcher="exhaustive", exact=True, progress=False)
+    db = pycolmap.Database.open(database_path)
+    try:
+        ids = sorted(image.image_id for image in db.read_all_images())
+        compared = 0
+        for id1, id2 in itertools.combinations(ids, 2):
+            expected = brute_force_matches(db.read_descriptors(id1).data,
+                                           db.read_descriptors(id2).data)
+            if len(expected) >= 50:
+                got = {tuple(map(int, match)) for match in db.read_matches(id1, id2)}
+                assert got == expected, (id1, id2)
+                compared += 1
+        assert compared >= 3
+    finally:
+        db.close()
 
 
 def test_sequential_matching_closes_the_loop(scene_database, tmp_path: Path) -> None:

@@ -143,7 +143,8 @@ def single_machine(tmp_path_factory) -> tuple[Path, Path, dict]:
     folder = tmp_path_factory.mktemp("ray_ring")
     scene = ring_scene(num_images=16, seed=0, camera=CAMERA)
     render_images(scene, folder / "images", supersample=1)
-    summary = reconstruct(folder / "images", folder / "single", "OPENCV", PARAMS, seed=0)
+    summary = reconstruct(folder / "images", folder / "single", "OPENCV", PARAMS,
+                          exact_matching=True, seed=0)
     return folder / "images", folder / "single", summary
 
 
@@ -174,14 +175,15 @@ def assert_same_database(database: Path, reference: Path) -> None:
 def run_distributed(images: Path, workspace: Path, address: str) -> subprocess.Popen:
     return subprocess.Popen([*CLI, "reconstruct", "--image_path", str(images),
                              "--workspace_path", str(workspace), "--camera_model", "OPENCV",
-                             "--camera_params", PARAMS, "--seed", "0", "--ray_address", address],
+                             "--camera_params", PARAMS, "--exact_matching", "--seed", "0",
+                             "--ray_address", address],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
 def test_distributed_reconstruct_writes_the_same_database(ray_cluster, single_machine, tmp_path):
     """Extraction over chunks and matching over blocks of pairs, on both nodes: every
-    table of the database equal to the single-machine run's, row for row, and the same
-    images registered in the same models."""
+    table of the database equal to the single-machine run's (both exact matching), row
+    for row, and the same images registered in the same models."""
     address, _ = ray_cluster
     images, reference, reference_summary = single_machine
     process = run_distributed(images, tmp_path / "ws", address)
