@@ -345,35 +345,6 @@ def extract_features(cluster: Cluster, database_path: str | os.PathLike,
 # ------------------------------------------------------------------ matching
 
 
-def pairs_to_match(database_path: Path, matcher: str, overlap: int,
-                   loop_closure: bool) -> list[tuple[int, int]]:
-    """The image-id pairs, in COLMAP's orientation, that matching.match_features matches:
-    pycolmap's exhaustive or sequential pair generator, then the quadratic and loop
-    closure pairs (matching.py) not among them."""
-    with pycolmap.Database.open(database_path) as db:
-        if matcher == "exhaustive":
-            generator = pycolmap.ExhaustivePairGenerator(pycolmap.ExhaustivePairingOptions(), db)
-        else:
-            generator = pycolmap.SequentialPairGenerator(
-                pycolmap.SequentialPairingOptions(overlap=overlap, quadratic_overlap=False), db)
-        pairs = [tuple(pair) for pair in generator.all_pairs()]
-        if matcher != "exhaustive":
-            ids = {image.name: image.image_id for image in db.read_all_images()}
-            names = sorted(ids)
-            more = single_matching.quadratic_pairs(names, overlap)
-            if loop_closure:
-                more += single_matching.loop_closure_pairs(names, overlap)
-            pairs += [(ids[a], ids[b]) for a, b in more]
-    seen: set[int] = set()
-    unique = []
-    for id1, id2 in pairs:
-        pair_id = pycolmap.image_pair_to_pair_id(id1, id2)
-        if id1 != id2 and pair_id not in seen:
-            seen.add(pair_id)
-            unique.append((id1, id2))
-    return unique
-
-
 def pair_blocks(pairs: list[tuple[int, int]], order: dict[int, int],
                 pairs_per_task: int) -> list[list[tuple[int, int]]]:
     """The pairs grouped by the blocks of PAIR_BLOCK_IMAGES images their two images fall
@@ -403,35 +374,22 @@ def match_and_verify(pairs: Sequence[tuple[int, int]], features: dict[int, Featu
                      cameras: dict[int, pycolmap.Camera], names: dict[int, str],
                      max_ratio: float, max_error_px: float, seed: int | None,
                      exact: bool) -> tuple[list[MatchedPair], float, float]:
-    """Match the pairs as match_features does (pycolmap's matching pipeline, here on a
-    scratch database of the pairs' images under their own ids), then verify each with
-    matching.two_view_geometry. Returns the pairs and the seconds spent in each step."""
+    """Match the pairs as matching.match_features does (exact_matches, or pycolmap's
+    matching pipeline on a scratch database of the pairs' images under their own ids),
+    then verify each with matching.two_view_geometry. Returns the pairs and the seconds
+    spent in each step."""
     start = time.perf_counter()
-    with tempfile.TemporaryDirectory(prefix="colmap-ext-match-") as scratch:
-        database_path = Path(scratch) / "database.db"
-        with pycolmap.Database.open(database_path) as db, pycolmap.DatabaseTransaction(db):
-            for camera in {camera.camera_id: camera for camera in cameras.values()}.values():
-                db.write_camera(camera, use_camera_id=True)
-            for image_id, (keypoints, descriptors) in features.items():
-                db.write_image(pycolmap.Image(name=names[image_id], image_id=image_id,
-                                              camera_id=cameras[image_id].camera_id),
-                               use_image_id=True)
-                db.write_keypoints(image_id, keypoints)
-                db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
-                    pycolmap.FeatureExtractorType.SIFT, descriptors))
-        options = single_matching.matching_options(max_ratio, exact)
-        options.num_threads = 1
-        with quiet_colmap_logs():
-            single_matching.match_pairs(database_path, [(names[a], names[b]) for a, b in pairs], options)
-        with pycolmap.Database.open(database_path) as db:
-            pair_ids, all_matches = db.read_all_matches()
+    if exact:
+        found = {(id1, id2): single_matching.exact_matches(features[id1][1], features[id2][1],
+                                                           max_ratio)
+                 for id1, id2 in (sorted(pair) for pair in pairs)}
+    else:
+        found = faiss_matches(pairs, features, cameras, names, max_ratio)
     matched = time.perf_counter()
-    # Pairs without matches have an empty row in the matches table and no geometry.
-    found = dict(zip(pair_ids, all_matches))
     results = []
     for id1, id2 in sorted((min(pair), max(pair)) for pair in pairs):
-        matches = found.get(pycolmap.image_pair_to_pair_id(id1, id2))
-        if matches is None:
+        matches = found.get((id1, id2))
+        if matches is None or not len(matches):  # an empty row and, as verify_matches, no geometry
             results.append(MatchedPair(id1, id2, np.zeros((0, 2), np.uint32), None))
             continue
         geometry = single_matching.two_view_geometry(
@@ -440,6 +398,35 @@ def match_and_verify(pairs: Sequence[tuple[int, int]], features: dict[int, Featu
             single_matching.pair_seed(seed, names[id1], names[id2]))
         results.append(MatchedPair(id1, id2, matches, geometry))
     return results, matched - start, time.perf_counter() - matched
+
+
+def faiss_matches(pairs: Sequence[tuple[int, int]], features: dict[int, Features],
+                  cameras: dict[int, pycolmap.Camera], names: dict[int, str],
+                  max_ratio: float) -> dict[tuple[int, int], np.ndarray]:
+    """(id1, id2) with id1 < id2 -> the matches pycolmap's matcher stores for the pair."""
+    needed = {image_id for pair in pairs for image_id in pair}
+    with tempfile.TemporaryDirectory(prefix="colmap-ext-match-") as scratch:
+        database_path = Path(scratch) / "database.db"
+        with pycolmap.Database.open(database_path) as db, pycolmap.DatabaseTransaction(db):
+            for camera in {cameras[i].camera_id: cameras[i] for i in needed}.values():
+                db.write_camera(camera, use_camera_id=True)
+            for image_id in sorted(needed):
+                keypoints, descriptors = features[image_id]
+                db.write_image(pycolmap.Image(name=names[image_id], image_id=image_id,
+                                              camera_id=cameras[image_id].camera_id),
+                               use_image_id=True)
+                db.write_keypoints(image_id, keypoints)
+                db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
+                    pycolmap.FeatureExtractorType.SIFT, descriptors))
+        options = single_matching.matching_options(max_ratio)
+        options.num_threads = 1
+        with quiet_colmap_logs():
+            single_matching.match_pairs(database_path, [(names[a], names[b]) for a, b in pairs],
+                                        options)
+        with pycolmap.Database.open(database_path) as db:
+            pair_ids, all_matches = db.read_all_matches()
+    return {tuple(pycolmap.pair_id_to_image_pair(pair_id)): matches
+            for pair_id, matches in zip(pair_ids, all_matches)}
 
 
 def match_block(pairs: list[tuple[int, int]], feature_refs: dict[int, Any],
@@ -469,7 +456,7 @@ def match_features(cluster: Cluster, database_path: str | os.PathLike, *,
         matcher = "exhaustive" if len(all_names) <= single_matching.AUTO_EXHAUSTIVE_MAX_IMAGES \
             else "sequential"
     start = time.perf_counter()
-    pairs = pairs_to_match(database_path, matcher, overlap, loop_closure)
+    pairs = single_matching.pairs_to_match(database_path, matcher, overlap, loop_closure)
     db = pycolmap.Database.open(database_path)
     try:
         camera_of = {camera.camera_id: camera for camera in db.read_all_cameras()}

@@ -1,8 +1,12 @@
-"""Feature matching by pycolmap, geometric verification by our calibrated 5-point RANSAC.
+"""Feature matching by pycolmap (or exactly), geometric verification by our calibrated
+5-point RANSAC.
 
-pycolmap matches descriptors (nearest neighbour, ratio test 0.8, which is the paper's
-1.25 inverted, and cross-check) with its own geometric verification switched off
-(`FeatureMatchingOptions.skip_geometric_verification`). Every matched pair is then
+Descriptors are matched as COLMAP matches SIFT (nearest neighbour, ratio test 0.8, which
+is the paper's 1.25 inverted, and cross-check): by pycolmap's FAISS index, with its own
+geometric verification switched off (`FeatureMatchingOptions.skip_geometric_verification`),
+or with `exact` by brute force here (exact_matches). FAISS is approximate and, rarely,
+not built the same twice (colmap/colmap#3874): a pair can then get a few matches more or
+fewer, and a weak pair lose the ones it had. Every matched pair is then
 verified with the known intrinsics: keypoints become undistorted rays through each
 image's camera, `solvers.relative_pose` (OpenGV 5-point, LO-MSAC) finds E, the relative
 pose and the inliers, and a CALIBRATED two-view geometry is written to the database,
@@ -16,6 +20,7 @@ closure: the last images matched with the first ones, through an imported pair l
 
 from __future__ import annotations
 
+import functools
 import os
 import tempfile
 import time
@@ -36,8 +41,17 @@ from colmap_ext.features import quiet_colmap_logs
 MATCHERS = ("auto", "exhaustive", "sequential")
 # "auto": exhaustive up to this many images (n^2 / 2 pairs stay cheap), sequential beyond.
 AUTO_EXHAUSTIVE_MAX_IMAGES = 100
-# A pair needs this many inliers to be verified (COLMAP's TwoViewGeometryOptions default).
+# A pair needs this many inliers to be verified (COLMAP's TwoViewGeometryOptions default);
+# COLMAP's matcher also stores no matches for a pair with fewer.
 MIN_NUM_INLIERS = 15
+# Exact matching takes the descriptor products of a pair in blocks of at most this many.
+EXACT_BLOCK_PRODUCTS = 2**22
+# COLMAP's SIFT matching: the bound on the angle (rad) between matched descriptors, and
+# the length of a stored uint8 descriptor.
+SIFT_MAX_DISTANCE = 0.7
+SIFT_DESCRIPTOR_NORM = 512.0
+# Images whose descriptors exact matching keeps at once (pairs come in image order).
+EXACT_CACHED_IMAGES = 64
 
 Config = pycolmap.TwoViewGeometryConfiguration
 
@@ -84,7 +98,7 @@ def match_features(database_path: str | os.PathLike, *, matcher: str = "auto",
 
     `max_error_px` is the Sampson error threshold of the verification, in pixels
     (COLMAP's default, 4); `seed` makes the RANSAC of every pair reproducible; `exact`
-    searches descriptors by brute force (see matching_options).
+    matches by brute force instead of FAISS: the same matches on every run and machine.
     """
     check_options(matcher, overlap, max_ratio, max_error_px, seed)
     database_path = Path(database_path)
@@ -92,27 +106,64 @@ def match_features(database_path: str | os.PathLike, *, matcher: str = "auto",
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= AUTO_EXHAUSTIVE_MAX_IMAGES else "sequential"
     start = time.perf_counter()
-    options = matching_options(max_ratio, exact)
-    with quiet_colmap_logs():
+    pairs = pairs_to_match(database_path, matcher, overlap, loop_closure)
+    if exact:
+        match_exactly(database_path, pairs, max_ratio, progress)
+    else:
+        with pycolmap.Database.open(database_path) as db:
+            name_of = {image.image_id: image.name for image in db.read_all_images()}
+        with quiet_colmap_logs():
+            match_pairs(database_path, [(name_of[a], name_of[b]) for a, b in pairs],
+                        matching_options(max_ratio))
+    matched = time.perf_counter()
+    verified = verify_matches(database_path, max_error_px=max_error_px, seed=seed,
+                              progress=progress)
+    return MatchingSummary(matcher, verified, matched - start, time.perf_counter() - matched)
+
+
+def pairs_to_match(database_path: Path, matcher: str, overlap: int,
+                   loop_closure: bool) -> list[tuple[int, int]]:
+    """The image-id pairs to match, in COLMAP's orientation: pycolmap's exhaustive or
+    sequential pair generator, then the quadratic and loop closure pairs not among them."""
+    with pycolmap.Database.open(database_path) as db:
         if matcher == "exhaustive":
-            pycolmap.match_exhaustive(database_path, matching_options=options,
-                                      device=pycolmap.Device.cpu)
+            generator = pycolmap.ExhaustivePairGenerator(pycolmap.ExhaustivePairingOptions(), db)
         else:
             # pycolmap's quadratic overlap replaces the linear pairs rather than adding
             # to them: linear pairs from pycolmap, the quadratic ones from us.
-            pycolmap.match_sequential(
-                database_path, matching_options=options,
-                pairing_options=pycolmap.SequentialPairingOptions(overlap=overlap,
-                                                                  quadratic_overlap=False),
-                device=pycolmap.Device.cpu)
+            generator = pycolmap.SequentialPairGenerator(
+                pycolmap.SequentialPairingOptions(overlap=overlap, quadratic_overlap=False), db)
+        pairs = [tuple(pair) for pair in generator.all_pairs()]
+        if matcher != "exhaustive":
+            ids = {image.name: image.image_id for image in db.read_all_images()}
+            names = sorted(ids)
             more = quadratic_pairs(names, overlap)
             if loop_closure:
                 more += loop_closure_pairs(names, overlap)
-            match_pairs(database_path, more, options)
-    matched = time.perf_counter()
-    pairs = verify_matches(database_path, max_error_px=max_error_px, seed=seed,
-                           progress=progress)
-    return MatchingSummary(matcher, pairs, matched - start, time.perf_counter() - matched)
+            pairs += [(ids[a], ids[b]) for a, b in more]
+    seen: set[int] = set()
+    unique = []
+    for id1, id2 in pairs:
+        pair_id = pycolmap.image_pair_to_pair_id(id1, id2)
+        if id1 != id2 and pair_id not in seen:
+            seen.add(pair_id)
+            unique.append((id1, id2))
+    return unique
+
+
+def match_exactly(database_path: Path, pairs: list[tuple[int, int]], max_ratio: float,
+                  progress: bool) -> None:
+    """Write exact_matches for the pairs that have no matches yet."""
+    with pycolmap.Database.open(database_path) as db:
+        todo = [pair for pair in pairs if not db.exists_matches(*pair)]
+        descriptors = functools.lru_cache(EXACT_CACHED_IMAGES)(
+            lambda image_id: db.read_descriptors(image_id).data)
+        with pycolmap.DatabaseTransaction(db):
+            for pair in tqdm(todo, desc="match pairs (exact)", unit="pair",
+                             disable=not progress or not todo):
+                id1, id2 = sorted(pair)
+                db.write_matches(id1, id2, exact_matches(descriptors(id1), descriptors(id2),
+                                                         max_ratio))
 
 
 def check_options(matcher: str, overlap: int, max_ratio: float, max_error_px: float,
@@ -144,20 +195,15 @@ def image_names(database_path: Path) -> list[str]:
         db.close()
 
 
-def matching_options(max_ratio: float, exact: bool) -> pycolmap.FeatureMatchingOptions:
-    """SIFT matching with ratio test and cross-check, leaving verification to us.
-
-    `exact`: brute-force nearest neighbours (COLMAP's cpu_brute_force_matcher), the same
-    matches on every run and machine. Otherwise pycolmap's FAISS index, which is
-    approximate and, rarely, not built the same twice (colmap/colmap#3874), but far
-    faster and lighter on large images.
-    """
+def matching_options(max_ratio: float) -> pycolmap.FeatureMatchingOptions:
+    """pycolmap's SIFT matching (FAISS), with ratio test and cross-check, leaving
+    verification to us."""
     options = pycolmap.FeatureMatchingOptions()
     options.skip_geometric_verification = True
     options.num_threads = os.cpu_count() or 1
     options.sift.max_ratio = max_ratio
+    options.sift.max_distance = SIFT_MAX_DISTANCE
     options.sift.cross_check = True
-    options.sift.cpu_brute_force_matcher = exact
     return options
 
 
@@ -264,3 +310,67 @@ def two_view_geometry(camera1: pycolmap.Camera, camera2: pycolmap.Camera,
         config=Config.CALIBRATED, E=result.E, F=F / np.linalg.norm(F),
         cam2_from_cam1=result.cam2_from_cam1,
         inlier_matches=np.ascontiguousarray(matches[valid][result.inlier_mask], dtype=np.uint32))
+
+
+# ------------------------------------------------------------------ exact matching
+
+
+def _two_largest(dot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of `dot`: the column of the largest value (the first one on ties), the
+    largest and the second largest value (0 when there is one column, as in COLMAP)."""
+    rows = np.arange(len(dot))
+    best = np.argmax(dot, axis=1)
+    first = dot[rows, best]
+    dot[rows, best] = -np.inf
+    second = dot.max(axis=1) if dot.shape[1] > 1 else np.zeros(len(dot), dot.dtype)
+    dot[rows, best] = first
+    return best, first, second
+
+
+def _passes_ratio_test(first: np.ndarray, second: np.ndarray, max_ratio: float,
+                       max_distance: float) -> np.ndarray:
+    """COLMAP's test, in its float32 arithmetic, on the angles between descriptors
+    (stored at unit length x 512): within `max_distance`, and below `max_ratio` times
+    the second nearest."""
+    scale = np.float32(1 / SIFT_DESCRIPTOR_NORM**2)
+    best = np.arccos(np.minimum(first * scale, np.float32(1)))
+    next_best = np.arccos(np.minimum(second * scale, np.float32(1)))
+    return (best <= np.float32(max_distance)) & (best < np.float32(max_ratio) * next_best)
+
+
+def exact_matches(descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio: float,
+                  max_distance: float = SIFT_MAX_DISTANCE) -> np.ndarray:
+    """SIFT matches by brute force, as COLMAP defines them: nearest neighbour by the
+    angle between descriptors, ratio test, distance bound and cross-check; (n, 2) uint32
+    keypoint indices, none when fewer than MIN_NUM_INLIERS (COLMAP keeps none then).
+    The matches of pycolmap's `cpu_brute_force_matcher`, several times faster.
+
+    Float32 dot products of uint8 descriptors are sums of integers below 2^24, hence
+    exact: the matches do not depend on the BLAS, its threads or the machine."""
+    none = np.zeros((0, 2), np.uint32)
+    if len(descriptors1) < 2 or len(descriptors2) < 2:
+        return none
+    a, b = descriptors1.astype(np.float32), descriptors2.astype(np.float32).T.copy()
+    forward = np.zeros(len(a), np.int64)
+    forward_ok = np.zeros(len(a), bool)
+    backward = np.zeros(len(b.T), np.int64)
+    backward_first = np.full(len(b.T), -np.inf, np.float32)
+    backward_second = np.full(len(b.T), -np.inf, np.float32)
+    block = max(2, EXACT_BLOCK_PRODUCTS // len(b.T))
+    for start in range(0, len(a), block):
+        dot = a[start:start + block] @ b
+        best, first, second = _two_largest(dot)
+        forward[start:start + len(dot)] = best
+        forward_ok[start:start + len(dot)] = _passes_ratio_test(first, second, max_ratio,
+                                                                max_distance)
+        best, first, second = _two_largest(dot.T)
+        backward_second = np.maximum(np.maximum(backward_second, second),
+                                     np.minimum(backward_first, first))
+        backward = np.where(first > backward_first, best + start, backward)
+        backward_first = np.maximum(backward_first, first)
+    backward_ok = _passes_ratio_test(backward_first, backward_second, max_ratio, max_distance)
+    matched = np.flatnonzero(forward_ok)
+    matched = matched[backward_ok[forward[matched]] & (backward[forward[matched]] == matched)]
+    if len(matched) < MIN_NUM_INLIERS:
+        return none
+    return np.stack([matched, forward[matched]], axis=1).astype(np.uint32)

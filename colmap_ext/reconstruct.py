@@ -55,9 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="auto: exhaustive up to 100 images, sequential (with loop "
                              "closure) beyond")
     parser.add_argument("--exact_matching", action="store_true",
-                        help="brute-force descriptor search (COLMAP's "
-                             "SiftMatching.cpu_brute_force_matcher): the same matches on every "
-                             "run and machine, but far slower on large images")
+                        help="match descriptors by brute force, not by pycolmap's FAISS "
+                             "index (approximate, and rarely not the same twice): the same "
+                             "matches on every run and machine, slower on large images")
     parser.add_argument("--seed", type=int, default=None,
                         help="RANSAC seed, for repeatable runs (default: random, recorded "
                              "in the summary)")
@@ -74,8 +74,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def main(image_path: str, workspace_path: str, camera_model: str, camera_params: str,
          camera_mode: str = "single", mask_path: str | None = None, segment: str | None = None,
          min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS, matcher: str = "auto",
-         exact_matching: bool = False, seed: int | None = None, overwrite: bool = False, output_type: str = "BIN",
-         ray_address: str | None = None) -> dict:
+         exact_matching: bool = False, seed: int | None = None, overwrite: bool = False,
+         output_type: str = "BIN", ray_address: str | None = None) -> dict:
     """Run masks (optional), features, matching and the mapper; returns the summary.
     With `ray_address`, features and matching run as tasks on that Ray cluster
     (distributed.py), which is reached before anything is written."""

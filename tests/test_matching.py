@@ -13,6 +13,7 @@ import pytest
 
 from colmap_ext.errors import UserError
 from colmap_ext.features import extract_features, quiet_colmap_logs
+from colmap_ext import matching
 from colmap_ext.matching import loop_closure_pairs, match_features
 
 WIDTH, HEIGHT, FOCAL = 480, 360, 500.0
@@ -150,44 +151,36 @@ def test_same_seed_same_result(scene_database, tmp_path: Path) -> None:
     assert results[0] == results[1]
 
 
-def brute_force_matches(descriptors1: np.ndarray, descriptors2: np.ndarray,
-                        max_ratio: float = 0.8, max_distance: float = 0.7) -> set[tuple[int, int]]:
-    """SIFT matching by definition: angular distance of the stored descriptors (unit
-    length times 512), ratio test, distance bound and cross-check."""
-    dot = descriptors1.astype(np.int64) @ descriptors2.astype(np.int64).T
-    distance = np.arccos(np.minimum(dot / 512.0**2, 1.0))
-
-    def nearest(d: np.ndarray) -> np.ndarray:
-        order = np.argsort(d, axis=1)[:, :2]
-        rows = np.arange(len(d))
-        best, second = d[rows, order[:, 0]], d[rows, order[:, 1]]
-        return np.where((best <= max_distance) & (best < max_ratio * second), order[:, 0], -1)
-
-    forward, backward = nearest(distance), nearest(distance.T)
-    mutual = [i for i in np.flatnonzero(forward >= 0) if backward[forward[i]] == i]
-    return {(int(i), int(forward[i])) for i in mutual}
+def colmap_brute_force_matches(source: Path, database_path: Path) -> dict[int, np.ndarray]:
+    """pair id -> matches of pycolmap's own brute-force SIFT matcher on a copy of `source`."""
+    shutil.copy(source, database_path)
+    options = pycolmap.FeatureMatchingOptions()
+    options.sift.cpu_brute_force_matcher = True
+    options.skip_geometric_verification = True
+    with quiet_colmap_logs():
+        pycolmap.match_exhaustive(database_path, matching_options=options,
+                                  device=pycolmap.Device.cpu)
+    with pycolmap.Database.open(database_path) as db:
+        return dict(zip(*db.read_all_matches()))
 
 
-def test_exact_matching_finds_the_nearest_neighbours(scene_database, tmp_path: Path) -> None:
-    """--exact_matching: every pair's matches are those of a brute-force search."""
+@pytest.mark.parametrize("block_products", [matching.EXACT_BLOCK_PRODUCTS, 1000])
+def test_exact_matching_is_colmaps_brute_force(scene_database, tmp_path: Path, monkeypatch,
+                                               block_products: int) -> None:
+    """`exact`: the matches of pycolmap's brute-force matcher, pair for pair, also when
+    the descriptor products are taken a few rows at a time."""
     source, _ = scene_database
+    expected = colmap_brute_force_matches(source, tmp_path / "colmap.db")
+    monkeypatch.setattr(matching, "EXACT_BLOCK_PRODUCTS", block_products)
     database_path = tmp_path / "database.db"
     shutil.copy(source, database_path)
     match_features(database_path, matcher="exhaustive", exact=True, progress=False)
-    db = pycolmap.Database.open(database_path)
-    try:
-        ids = sorted(image.image_id for image in db.read_all_images())
-        compared = 0
-        for id1, id2 in itertools.combinations(ids, 2):
-            expected = brute_force_matches(db.read_descriptors(id1).data,
-                                           db.read_descriptors(id2).data)
-            if len(expected) >= 50:
-                got = {tuple(map(int, match)) for match in db.read_matches(id1, id2)}
-                assert got == expected, (id1, id2)
-                compared += 1
-        assert compared >= 3
-    finally:
-        db.close()
+    with pycolmap.Database.open(database_path) as db:
+        got = dict(zip(*db.read_all_matches()))
+        assert min(db.num_keypoints_for_image(i.image_id) for i in db.read_all_images()) > 3000
+    assert got.keys() == expected.keys() and sum(len(m) > 100 for m in got.values()) >= 3
+    for pair_id, matches in expected.items():
+        np.testing.assert_array_equal(np.sort(got[pair_id], axis=0), np.sort(matches, axis=0))
 
 
 def test_sequential_matching_closes_the_loop(scene_database, tmp_path: Path) -> None:
