@@ -194,7 +194,9 @@ def format_summary(summary: dict, workspace: Path) -> str:
         f"Features: {features['num_images']} images, {features['num_reextracted']} extracted "
         f"again with a lower threshold; keypoints per image {low}/{median:g}/{high} "
         "(min/median/max)",
-        f"Matching ({matching['matcher']}): {matching['num_matched_pairs']} matched pairs, "
+        f"Matching ({matching['matcher']}"
+        f"{', exact' if summary['inputs']['exact_matching'] else ''}): "
+        f"{matching['num_matched_pairs']} matched pairs, "
         f"{matching['num_verified_pairs']} verified, {matching['num_inlier_matches']} inlier "
         "matches",
     ]

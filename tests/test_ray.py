@@ -193,6 +193,7 @@ def test_distributed_reconstruct_writes_the_same_database(ray_cluster, single_ma
     assert registered_names(tmp_path / "ws") == registered_names(reference)
     summary = json.loads((tmp_path / "ws" / "reconstruct_summary.json").read_text())
     assert summary["ray"] == {"num_nodes": 2, "num_cpus": 2, "images": "by path"}
+    assert summary["inputs"]["exact_matching"] and "Matching (exhaustive, exact)" in stdout
     assert summary["features"]["images"] == reference_summary["features"]["images"]
     assert summary["matching"]["pairs"] == reference_summary["matching"]["pairs"]
     assert not [p for p in (tmp_path / "ws").iterdir() if p.name.startswith(".colmap-ext-")]
