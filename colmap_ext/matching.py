@@ -37,6 +37,7 @@ from tqdm import tqdm
 import solvers
 from colmap_ext.errors import UserError
 from colmap_ext.features import quiet_colmap_logs
+from colmap_ext.mapper.descriptors import take_nearest
 
 MATCHERS = ("auto", "exhaustive", "sequential")
 # "auto": exhaustive up to this many images (n^2 / 2 pairs stay cheap), sequential beyond.
@@ -315,18 +316,6 @@ def two_view_geometry(camera1: pycolmap.Camera, camera2: pycolmap.Camera,
 # ------------------------------------------------------------------ exact matching
 
 
-def _two_largest(dot: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Per row of `dot`: the column of the largest value (the first one on ties), the
-    largest and the second largest value (0 when there is one column, as in COLMAP)."""
-    rows = np.arange(len(dot))
-    best = np.argmax(dot, axis=1)
-    first = dot[rows, best]
-    dot[rows, best] = -np.inf
-    second = dot.max(axis=1) if dot.shape[1] > 1 else np.zeros(len(dot), dot.dtype)
-    dot[rows, best] = first
-    return best, first, second
-
-
 def _passes_ratio_test(first: np.ndarray, second: np.ndarray, max_ratio: float,
                        max_distance: float) -> np.ndarray:
     """COLMAP's test, in its float32 arithmetic, on the angles between descriptors
@@ -359,15 +348,17 @@ def exact_matches(descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio:
     block = max(2, EXACT_BLOCK_PRODUCTS // len(b.T))
     for start in range(0, len(a), block):
         dot = a[start:start + block] @ b
-        best, first, second = _two_largest(dot)
-        forward[start:start + len(dot)] = best
-        forward_ok[start:start + len(dot)] = _passes_ratio_test(first, second, max_ratio,
-                                                                max_distance)
-        best, first, second = _two_largest(dot.T)
+        # The columns' two largest first, on a copy: take_nearest overwrites what it takes.
+        index, largest = take_nearest(dot.T.copy(), 2)
+        best, first, second = index[:, 0], largest[:, 0], largest[:, 1]
         backward_second = np.maximum(np.maximum(backward_second, second),
                                      np.minimum(backward_first, first))
         backward = np.where(first > backward_first, best + start, backward)
         backward_first = np.maximum(backward_first, first)
+        index, largest = take_nearest(dot, 2)
+        forward[start:start + len(dot)] = index[:, 0]
+        forward_ok[start:start + len(dot)] = _passes_ratio_test(largest[:, 0], largest[:, 1],
+                                                                max_ratio, max_distance)
     backward_ok = _passes_ratio_test(backward_first, backward_second, max_ratio, max_distance)
     matched = np.flatnonzero(forward_ok)
     matched = matched[backward_ok[forward[matched]] & (backward[forward[matched]] == matched)]

@@ -36,9 +36,10 @@ def _similarity_blocks(queries: np.ndarray,
         yield start, unit_descriptors(queries[start:start + block]) @ database.T
 
 
-def _take_nearest(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per row, the columns of the k largest cosines, largest first, and those cosines:
-    k rounds of argmax (for small k, faster than a partial sort). Overwrites them."""
+def take_nearest(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per row, the columns of the k largest similarities (cosines, dot products),
+    largest first, and those values: k rounds of argmax (for small k, faster than a
+    partial sort; the first column on ties). Overwrites them."""
     rows = np.arange(len(similarity))
     index = np.empty((len(similarity), k), np.int64)
     best = np.empty((len(similarity), k), np.float32)
@@ -67,8 +68,8 @@ def nearest_descriptors(queries: np.ndarray, database: np.ndarray, k: int,
     for start, similarity in _similarity_blocks(queries, database):
         rows = slice(start, start + len(similarity))
         if k_subset:
-            sub_index[rows], sub_best[rows] = _take_nearest(similarity[:, subset], k_subset)
-        index[rows], best[rows] = _take_nearest(similarity, k)
+            sub_index[rows], sub_best[rows] = take_nearest(similarity[:, subset], k_subset)
+        index[rows], best[rows] = take_nearest(similarity, k)
     return index, _angles(best), (sub_index, _angles(sub_best))
 
 
