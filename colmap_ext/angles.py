@@ -17,3 +17,10 @@ def rotation_angles_deg(R: np.ndarray) -> np.ndarray:
 def vector_angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Angles between rows of a and b (n,3) in degrees, as atan2(|a x b|, a.b)."""
     return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
+
+
+def mean_rotation(rotations: np.ndarray) -> np.ndarray:
+    """The rotation nearest (Frobenius) to the sum of `rotations` (n,3,3): their chordal
+    mean."""
+    u, _, vt = np.linalg.svd(np.sum(rotations, axis=0))
+    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt

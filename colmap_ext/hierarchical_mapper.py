@@ -7,7 +7,9 @@ cluster is mapped on its own by the calibrated mapper (mapper.pipeline.reconstru
 Ray task with `--ray_address`, else a process of a local pool of `--num_workers`.
 The cluster models are then brought into one frame along a maximum spanning tree of
 their overlaps, each link the similarity their shared images agree on (merging.py's
-rule: rotations and directions of the centres within a few degrees), points that
+rule: rotations and directions of the centres within a few degrees; the rotation
+from the shared images' own rotations, which fix it where their centres, along a
+walk, nearly lie on a line), points that
 share an observation become one, and a global bundle adjustment finishes the model.
 Output as COLMAP's: OUTPUT/0, OUTPUT/1, ... (one per group of clusters that joined).
 """
@@ -25,7 +27,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
-from colmap_ext.angles import rotation_angles_deg, vector_angles_deg
+from colmap_ext.angles import mean_rotation, rotation_angles_deg, vector_angles_deg
 from colmap_ext.database import DatabaseContents, check_database_file, read_database
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from_flags
@@ -236,11 +238,14 @@ def similarity(target: ClusterModel, source: ClusterModel,
     The centres of the shared images give a robust similarity (pycolmap's LO-RANSAC);
     an image agrees when, moved by it, its rotation and its direction from the centre
     of the overlap are within merge_max_angle_deg of the target's, and its centre
-    within max_centre_error of the overlap's extent."""
+    within max_centre_error of the overlap's extent. The agreeing images then give the
+    similarity again, its rotation from their own rotations (refine_similarity), and
+    the images that agree with that one are the answer's."""
     shared, in_target, in_source = np.intersect1d(target.image_ids, source.image_ids,
                                                   return_indices=True)
     if len(shared) < options.min_shared_images:
         return None
+    target_poses, source_poses = target.cams_from_world[in_target], source.cams_from_world[in_source]
     centres_target = target.centres()[in_target]
     centres_source = source.centres()[in_source]
     extent = np.sqrt(np.mean(np.sum((centres_target - centres_target.mean(0)) ** 2, axis=1)))
@@ -251,22 +256,47 @@ def similarity(target: ClusterModel, source: ClusterModel,
     found = pycolmap.estimate_sim3d_robust(centres_source, centres_target, ransac)
     if found is None:
         return None
+
+    def agreeing(target_from_source: pycolmap.Sim3d) -> np.ndarray:
+        moved = target_from_source * centres_source
+        # cam_from_target of each shared image, through the source: R_source @ R^T.
+        through_source = source_poses[:, :, :3] @ target_from_source.rotation.matrix().T
+        rotation_error = rotation_angles_deg(
+            np.transpose(target_poses[:, :, :3], (0, 2, 1)) @ through_source)
+        middle = centres_target.mean(axis=0)
+        direction_error = vector_angles_deg(centres_target - middle, moved - middle)
+        centre_error = np.linalg.norm(moved - centres_target, axis=1) / extent
+        return (rotation_error <= options.merge_max_angle_deg) & \
+            (direction_error <= options.merge_max_angle_deg) & \
+            (centre_error <= options.max_centre_error)
+
     target_from_source = found["tgt_from_src"]
-    moved = target_from_source * centres_source
-    rotation = target_from_source.rotation.matrix()
-    # cam_from_target of each shared image, through the source: R_source @ R^T.
-    through_source = source.cams_from_world[in_source, :, :3] @ rotation.T
-    rotation_error = rotation_angles_deg(
-        np.transpose(target.cams_from_world[in_target, :, :3], (0, 2, 1)) @ through_source)
-    middle = centres_target.mean(axis=0)
-    direction_error = vector_angles_deg(centres_target - middle, moved - middle)
-    centre_error = np.linalg.norm(moved - centres_target, axis=1) / extent
-    agree = (rotation_error <= options.merge_max_angle_deg) & \
-        (direction_error <= options.merge_max_angle_deg) & \
-        (centre_error <= options.max_centre_error)
-    if agree.sum() < options.min_shared_images:
-        return None
+    for _ in range(2):
+        agree = agreeing(target_from_source)
+        if agree.sum() < options.min_shared_images:
+            return None
+        target_from_source = refine_similarity(target_poses[agree], source_poses[agree],
+                                               centres_target[agree], centres_source[agree])
     return target_from_source, int(agree.sum())
+
+
+def refine_similarity(target_poses: np.ndarray, source_poses: np.ndarray,
+                      centres_target: np.ndarray, centres_source: np.ndarray) -> pycolmap.Sim3d:
+    """target_from_source from the images both models pose (cams_from_world (k,3,4) and
+    centres in each frame): the rotation, the mean of what each image's two rotations
+    imply; scale and translation, the least-squares fit of the centres under it.
+
+    The centres alone fix the rotation poorly where they are nearly collinear, as on a
+    walk or along a sequence (about the line they lie on); each image's two rotations
+    fix it to their noise. A wrong rotation at a junction is a bend that the final
+    adjustment straightens only slowly."""
+    rotation = mean_rotation(np.transpose(target_poses[:, :, :3], (0, 2, 1)) @ source_poses[:, :, :3])
+    moved = centres_source @ rotation.T
+    offsets_target = centres_target - centres_target.mean(axis=0)
+    offsets_moved = moved - moved.mean(axis=0)
+    scale = np.sum(offsets_target * offsets_moved) / max(np.sum(offsets_moved ** 2), 1e-300)
+    translation = centres_target.mean(axis=0) - scale * moved.mean(axis=0)
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation)
 
 
 def spanning_trees(models: list[ClusterModel], options: HierarchicalOptions

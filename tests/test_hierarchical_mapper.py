@@ -110,6 +110,41 @@ def test_similarity_of_two_cluster_models_ignores_disagreeing_images():
     np.testing.assert_allclose(target_from_source.matrix(), expected.matrix(), atol=1e-9)
 
 
+def test_similarity_takes_its_rotation_from_the_cameras_along_a_line():
+    """Shared images along a nearly straight walk (centres within 1 % of a line, with
+    noise of 0.05 % of the walk): the centres alone leave the rotation about the line
+    loosely fixed, the shared images' rotations fix it to their own noise (0.01 deg)."""
+    rng = np.random.default_rng(3)
+    count = 20
+    centres = np.stack([np.arange(count, dtype=float),
+                        *(0.01 * count * rng.uniform(-1, 1, (2, count)))], axis=1)
+    poses = [look_at(c, c + np.array([0.0, 5.0, rng.uniform(-1, 1)]), 0.0) for c in centres]
+    target = ClusterModel(np.arange(1, count + 1), np.array([p.matrix() for p in poses]),
+                          np.zeros((0, 3)), *np.zeros((3, 0), np.int64))
+    source_from_target = pycolmap.Sim3d(2.0, pycolmap.Rotation3d(np.array([0.4, 0.1, -0.3])),
+                                        np.array([1.0, 2.0, 3.0]))
+    moved = []
+    for pose in poses:
+        noisy = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.radians(rng.normal(0, 0.01, 3))) * pose.rotation,
+            pose.translation)
+        noisy = pycolmap.Rigid3d(noisy.rotation, noisy.translation
+                                 - noisy.rotation * (0.0005 * count * rng.normal(0, 1, 3)))
+        moved.append(source_from_target.transform_camera_world(noisy))
+    source = ClusterModel(np.arange(1, count + 1), np.array([m.matrix() for m in moved]),
+                          np.zeros((0, 3)), *np.zeros((3, 0), np.int64))
+    expected = source_from_target.inverse().rotation.matrix()
+
+    def rotation_error_deg(rotation: np.ndarray) -> float:
+        return float(np.degrees(np.arccos(np.clip((np.trace(rotation.T @ expected) - 1) / 2, -1, 1))))
+
+    from_centres = pycolmap.estimate_sim3d(source.centres(), target.centres())
+    assert rotation_error_deg(from_centres.rotation.matrix()) > 0.3
+    found = similarity(target, source, HierarchicalOptions())
+    assert found is not None and found[1] == count
+    assert rotation_error_deg(found[0].rotation.matrix()) < 0.02
+
+
 def test_grid_maps_into_one_accurate_model(survey, tmp_path):
     """The command, as a user runs it: clusters of at most 40 + 15 images on two
     worker processes, one model of all 225 images in OUTPUT/0, as accurate as the

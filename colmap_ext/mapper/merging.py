@@ -22,7 +22,7 @@ import numpy as np
 import pycolmap
 
 import solvers
-from colmap_ext.angles import rotation_angles_deg, vector_angles_deg
+from colmap_ext.angles import mean_rotation, rotation_angles_deg, vector_angles_deg
 from colmap_ext.mapper.descriptors import nearest_descriptors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
@@ -129,7 +129,7 @@ def similarity_from(a: CrossRegistration, b: CrossRegistration,
     distances; translation: the mean of what each centre implies."""
     if rotation_angles_deg((a.rotation.T @ b.rotation)[None])[0] > max_angle_deg:
         return None
-    rotation = _mean_rotation(a.rotation, b.rotation)
+    rotation = mean_rotation(np.stack([a.rotation, b.rotation]))
     baseline_target = b.centre_target - a.centre_target
     baseline_source = rotation @ (b.centre_source - a.centre_source)
     lengths = np.linalg.norm(baseline_target), np.linalg.norm(baseline_source)
@@ -140,12 +140,6 @@ def similarity_from(a: CrossRegistration, b: CrossRegistration,
     translation = np.mean([r.centre_target - scale * rotation @ r.centre_source for r in (a, b)],
                           axis=0)
     return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation)
-
-
-def _mean_rotation(*rotations: np.ndarray) -> np.ndarray:
-    """The rotation nearest (Frobenius) to the sum of `rotations`."""
-    u, _, vt = np.linalg.svd(sum(rotations))
-    return u @ np.diag([1.0, 1.0, np.linalg.det(u @ vt)]) @ vt
 
 
 def join(target: Model, source: Model, similarity: pycolmap.Sim3d,
