@@ -348,8 +348,7 @@ def exact_matches(descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio:
     block = max(2, EXACT_BLOCK_PRODUCTS // len(b.T))
     for start in range(0, len(a), block):
         dot = a[start:start + block] @ b
-        # The columns' two largest first, on a copy: take_nearest overwrites what it takes.
-        index, largest = take_nearest(dot.T.copy(), 2)
+        index, largest = take_nearest(dot.T, 2)  # the columns' two largest
         best, first, second = index[:, 0], largest[:, 0], largest[:, 1]
         backward_second = np.maximum(np.maximum(backward_second, second),
                                      np.minimum(backward_first, first))

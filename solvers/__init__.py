@@ -1,4 +1,5 @@
-"""Calibrated minimal solvers and RANSAC (OpenGV, in C++) in COLMAP's conventions.
+"""Calibrated minimal solvers and RANSAC (OpenGV, in C++) in COLMAP's conventions, and
+the mapper's one compiled search kernel (`largest_per_row`).
 
 Conventions, once:
 - Inputs are undistorted bearing vectors: (N, 3) rays or (N, 2) normalized image
@@ -14,6 +15,7 @@ from solvers.api import (
     RelativePoseResult,
     absolute_pose,
     five_point,
+    largest_per_row,
     p3p,
     relative_pose,
     triangulate,
@@ -26,6 +28,7 @@ __all__ = [
     "RelativePoseResult",
     "absolute_pose",
     "five_point",
+    "largest_per_row",
     "p3p",
     "relative_pose",
     "triangulate",

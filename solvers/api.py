@@ -161,3 +161,20 @@ def triangulate(cam1_from_world: pycolmap.Rigid3d, cam2_from_world: pycolmap.Rig
         np.concatenate([np.zeros(n, np.int32), np.ones(n, np.int32)]),
         np.concatenate([index, index]), np.concatenate([f1, f2]),
         num_points=n, min_angle_deg=min_angle_deg)
+
+
+def largest_per_row(values: np.ndarray, k: int, *, subset: np.ndarray | None = None,
+                    k_subset: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Per row of `values` (n, m): the columns of its k largest values, largest first
+    (the earlier column on ties, as numpy's argmax), and those values; with `subset`
+    (column indices), the k_subset largest among those columns too (positions in
+    `subset`, and values). Places beyond the columns there are hold -inf at column 0.
+    One pass over each row, in C++ without the GIL: the mapper's nearest-descriptor
+    search runs it on blocks of cosines."""
+    values = np.ascontiguousarray(values, dtype=np.float32)
+    if values.ndim != 2:
+        raise ValueError(f"values must be 2-D, got shape {values.shape}")
+    columns = np.ascontiguousarray(np.zeros(0) if subset is None else subset, dtype=np.int64)
+    if k < 0 or k_subset < 0:
+        raise ValueError(f"k and k_subset must be >= 0, got {k} and {k_subset}")
+    return _opengv.largest_per_row(values, int(k), columns, int(k_subset))

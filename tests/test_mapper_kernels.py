@@ -13,6 +13,7 @@ import numpy as np
 import pycolmap
 import pytest
 
+import solvers
 from colmap_ext.database import DescriptorReader, read_database
 from colmap_ext.mapper import MapperOptions, descriptors
 from colmap_ext.mapper.descriptors import NearestDescriptors, nearest_descriptors, unit_descriptors
@@ -50,6 +51,28 @@ def test_blocked_search_is_the_exact_k_nearest(small_blocks) -> None:
     true_index, true_angles = brute_force_nearest(queries, database, 3)
     assert (index == true_index).all()
     np.testing.assert_allclose(angles, true_angles, atol=1e-5)
+
+
+@pytest.mark.parametrize("num_columns", [1, 3, 50])
+def test_largest_per_row_ranks_as_a_stable_sort(num_columns: int) -> None:
+    """The compiled kernel against numpy's stable sort, on values with many ties (the
+    earlier column first) and on rows shorter than k (-inf at column 0 beyond them)."""
+    rng = np.random.default_rng(num_columns)
+    values = rng.integers(0, 6, (40, num_columns)).astype(np.float32)
+    subset = rng.permutation(num_columns)[:max(1, num_columns // 3)]
+
+    def reference(block: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+        order = np.argsort(-block, axis=1, kind="stable")[:, :k]
+        taken = np.take_along_axis(block, order, axis=1)
+        missing = k - order.shape[1]
+        return (np.pad(order, ((0, 0), (0, missing))),
+                np.pad(taken, ((0, 0), (0, missing)), constant_values=-np.inf))
+
+    index, best, sub_index, sub_best = solvers.largest_per_row(values, 4, subset=subset, k_subset=2)
+    expected_index, expected_best = reference(values, 4)
+    expected_sub_index, expected_sub_best = reference(values[:, subset], 2)
+    assert (index == expected_index).all() and (best == expected_best).all()
+    assert (sub_index == expected_sub_index).all() and (sub_best == expected_sub_best).all()
 
 
 @pytest.mark.parametrize("num_threads", [1, 2])

@@ -12,6 +12,8 @@ from concurrent.futures import ThreadPoolExecutor
 import numpy as np
 from threadpoolctl import ThreadpoolController
 
+import solvers
+
 # Cosines computed at once: 4 MiB of float32, which stays in cache while the
 # nearest are taken (smaller and larger blocks measured slower).
 QUERY_BLOCK_ENTRIES = 2**20
@@ -38,15 +40,8 @@ def _similarity_blocks(queries: np.ndarray,
 
 def take_nearest(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
     """Per row, the columns of the k largest similarities (cosines, dot products),
-    largest first, and those values: k rounds of argmax (for small k, faster than a
-    partial sort; the first column on ties). Overwrites them."""
-    rows = np.arange(len(similarity))
-    index = np.empty((len(similarity), k), np.int64)
-    best = np.empty((len(similarity), k), np.float32)
-    for j in range(k):
-        index[:, j] = np.argmax(similarity, axis=1)
-        best[:, j] = similarity[rows, index[:, j]]
-        similarity[rows, index[:, j]] = -np.inf
+    largest first (the first column on ties), and those values."""
+    index, best, _, _ = solvers.largest_per_row(similarity, k)
     return index, best
 
 
@@ -67,9 +62,8 @@ def nearest_descriptors(queries: np.ndarray, database: np.ndarray, k: int,
     sub_best = np.empty((len(queries), k_subset), np.float32)
     for start, similarity in _similarity_blocks(queries, database):
         rows = slice(start, start + len(similarity))
-        if k_subset:
-            sub_index[rows], sub_best[rows] = take_nearest(similarity[:, subset], k_subset)
-        index[rows], best[rows] = take_nearest(similarity, k)
+        index[rows], best[rows], sub_index[rows], sub_best[rows] = solvers.largest_per_row(
+            similarity, k, subset=subset, k_subset=k_subset)
     return index, _angles(best), (sub_index, _angles(sub_best))
 
 

@@ -10,6 +10,7 @@
 #include <string>
 
 #include "absolute_pose.hpp"
+#include "largest.hpp"
 #include "relative_pose.hpp"
 #include "triangulation.hpp"
 
@@ -146,10 +147,40 @@ py::tuple triangulate_tracks_py(const Eigen::Ref<const RowsX12>& cams_from_world
   return py::make_tuple(points, valid);
 }
 
+using FloatMatrix = py::array_t<float, py::array::c_style | py::array::forcecast>;
+using Int64Vector = py::array_t<int64_t, py::array::c_style | py::array::forcecast>;
+
+py::tuple largest_per_row_py(const FloatMatrix& values, int k, const Int64Vector& subset,
+                             int k_subset) {
+  if (values.ndim() != 2) throw std::invalid_argument("values must be a 2-D array");
+  const py::ssize_t rows = values.shape(0), cols = values.shape(1), num_subset = subset.size();
+  if (k < 0 || k_subset < 0) throw std::invalid_argument("k and k_subset must be >= 0");
+  const int64_t* columns = subset.data();
+  for (py::ssize_t s = 0; s < num_subset; ++s)
+    if (columns[s] < 0 || columns[s] >= cols) throw std::invalid_argument("subset out of range");
+  py::array_t<int64_t> index({rows, static_cast<py::ssize_t>(k)});
+  py::array_t<float> best({rows, static_cast<py::ssize_t>(k)});
+  py::array_t<int64_t> sub_index({rows, static_cast<py::ssize_t>(k_subset)});
+  py::array_t<float> sub_best({rows, static_cast<py::ssize_t>(k_subset)});
+  const float* data = values.data();
+  int64_t* index_out = index.mutable_data();
+  float* best_out = best.mutable_data();
+  int64_t* sub_index_out = sub_index.mutable_data();
+  float* sub_best_out = sub_best.mutable_data();
+  {
+    py::gil_scoped_release release;
+    largest_per_row(data, rows, cols, k, columns, num_subset, k_subset, index_out, best_out,
+                    sub_index_out, sub_best_out);
+  }
+  return py::make_tuple(index, best, sub_index, sub_best);
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_opengv, m) {
-  m.doc() = "OpenGV minimal solvers and RANSAC in COLMAP's conventions (see geometry.hpp).";
+  m.doc() =
+      "OpenGV minimal solvers and RANSAC in COLMAP's conventions (see geometry.hpp), and the "
+      "mapper's largest-per-row kernel (largest.hpp).";
   m.def("relative_pose", &relative_pose, py::arg("rays1"), py::arg("rays2"), py::arg("method"),
         py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
         py::arg("confidence"), py::arg("seed"));
@@ -161,4 +192,6 @@ PYBIND11_MODULE(_opengv, m) {
   m.def("triangulate_tracks", &triangulate_tracks_py, py::arg("cams_from_world"),
         py::arg("view_index"), py::arg("point_index"), py::arg("rays"), py::arg("num_points"),
         py::arg("min_angle_deg"));
+  m.def("largest_per_row", &largest_per_row_py, py::arg("values"), py::arg("k"),
+        py::arg("subset"), py::arg("k_subset"));
 }
