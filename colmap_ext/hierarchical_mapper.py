@@ -218,12 +218,13 @@ def map_cluster(index: int, db: DatabaseContents, options: MapperOptions,
                 threads: int) -> tuple[int, list[ClusterModel], float]:
     """The task: the calibrated mapper on one cluster, on `threads` threads (its options'
     for Ceres, and as many for BLAS, so that workers sharing a machine do not
-    oversubscribe it); (index, models, seconds)."""
+    oversubscribe it); (index, models, seconds). Without the models' closing global
+    adjustments: the joined model's adjustment (bundle_adjust) replaces them."""
     from threadpoolctl import threadpool_limits
 
     start = time.perf_counter()
     with threadpool_limits(threads):
-        reconstructions = reconstruct(db, options, progress=False)
+        reconstructions = reconstruct(db, options, progress=False, final_adjustment=False)
     return index, [ClusterModel.from_reconstruction(r) for r in reconstructions], \
         time.perf_counter() - start
 
@@ -334,7 +335,7 @@ def join(db: DatabaseContents, models: list[ClusterModel],
          root_from_model: dict[int, pycolmap.Sim3d]) -> pycolmap.Reconstruction:
     """One reconstruction of a group: each image posed by the model that observes most
     through it; points that share an observation (image, keypoint) merged into one, at
-    the mean of their positions, keeping one keypoint per image."""
+    the mean of their positions, keeping one keypoint per image (the first model's)."""
     pose_of: dict[int, tuple[int, pycolmap.Rigid3d]] = {}
     for m, sim in root_from_model.items():
         counts = models[m].observations_per_image()
@@ -342,50 +343,62 @@ def join(db: DatabaseContents, models: list[ClusterModel],
             support = counts.get(image_id, 0)
             if image_id not in pose_of or support > pose_of[image_id][0]:
                 pose_of[image_id] = (support, sim.transform_camera_world(pycolmap.Rigid3d(matrix)))
-    # Points of every model, in the root's frame, numbered globally.
-    xyz, owners, offsets = [], [], {}
-    for m, sim in root_from_model.items():
-        offsets[m] = sum(len(x) for x in xyz)
-        xyz.append(sim * models[m].xyz if len(models[m].xyz) else models[m].xyz)
-    xyz = np.concatenate(xyz) if xyz else np.zeros((0, 3))
-    parent = np.arange(len(xyz))
-
-    def find(i: int) -> int:
-        while parent[i] != i:
-            parent[i] = parent[parent[i]]
-            i = parent[i]
-        return i
-
-    first_point_of: dict[tuple[int, int], int] = {}
-    observations = []
-    for m in root_from_model:
-        model = models[m]
-        points = model.track_point + offsets[m]
-        for point, image_id, keypoint in zip(points.tolist(), model.track_image.tolist(),
-                                             model.track_keypoint.tolist()):
-            observations.append((point, image_id, keypoint))
-            other = first_point_of.setdefault((image_id, keypoint), point)
-            if other != point:
-                parent[find(point)] = find(other)
-    tracks: dict[int, dict[int, int]] = {}
-    members: dict[int, set[int]] = {}
-    for point, image_id, keypoint in observations:
-        root = find(point)
-        tracks.setdefault(root, {}).setdefault(image_id, keypoint)
-        members.setdefault(root, set()).add(point)
-
     reconstruction = posed_images(db, db.cameras, {image_id: pose_of[image_id][1]
                                                    for image_id in sorted(pose_of)})
-    for root, track in tracks.items():
-        if len(track) < 2:
-            continue
-        point = pycolmap.Point3D()
-        point.xyz = xyz[sorted(members[root])].mean(axis=0)
-        point.track = pycolmap.Track()
-        for image_id, keypoint in track.items():
-            point.track.add_element(image_id, keypoint)
-        reconstruction.add_point3D(point.xyz, point.track)
+    # Every model's points in the root's frame, numbered globally, and their observations.
+    group = list(root_from_model)
+    xyz = np.concatenate([np.zeros((0, 3))] + [root_from_model[m] * models[m].xyz
+                                               for m in group if len(models[m].xyz)])
+    offsets = np.cumsum([0] + [len(models[m].xyz) for m in group])
+    point = np.concatenate([models[m].track_point + offset for m, offset in zip(group, offsets)])
+    image = np.concatenate([models[m].track_image for m in group])
+    keypoint = np.concatenate([models[m].track_keypoint for m in group])
+    merged = shared_observation_groups(point, image, keypoint, len(xyz))
+    # One keypoint per image and merged point: the first observation's.
+    owner = merged[point]
+    _, first = np.unique(owner * (image.max(initial=0) + 1) + image, return_index=True)
+    first.sort()
+    owner, image, keypoint = owner[first], image[first], keypoint[first]
+    observed = np.zeros(len(xyz), bool)
+    observed[point] = True
+    sums = np.zeros_like(xyz)
+    np.add.at(sums, merged[observed], xyz[observed])
+    members = np.bincount(merged[observed], minlength=len(xyz))
+    order = np.argsort(owner, kind="stable")
+    owners, starts, lengths = np.unique(owner[order], return_index=True, return_counts=True)
+    elements = [pycolmap.TrackElement(i, k) for i, k in zip(image[order].tolist(),
+                                                           keypoint[order].tolist())]
+    for owner_id, start, length in zip(owners.tolist(), starts.tolist(), lengths.tolist()):
+        if length >= 2:
+            reconstruction.add_point3D(sums[owner_id] / members[owner_id],
+                                       pycolmap.Track(elements[start:start + length]))
     return reconstruction
+
+
+def shared_observation_groups(point: np.ndarray, image: np.ndarray, keypoint: np.ndarray,
+                              num_points: int) -> np.ndarray:
+    """Per point id, the smallest id of its group: points that share an observation
+    (image, keypoint), directly or through other points. Observation k is keypoint
+    `keypoint[k]` of image `image[k]` seeing point `point[k]`. Minimum labels spread
+    along the links, with pointer jumping, until nothing changes."""
+    key = image.astype(np.int64) * (int(keypoint.max(initial=0)) + 1) + keypoint
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    other = point[first][inverse]
+    linked = point != other
+    a, b = point[linked], other[linked]
+    label = np.arange(num_points)
+    while True:
+        previous = label.copy()
+        low = np.minimum(label[a], label[b])
+        np.minimum.at(label, a, low)
+        np.minimum.at(label, b, low)
+        while True:
+            jumped = label[label]
+            if (jumped == label).all():
+                break
+            label = jumped
+        if (label == previous).all():
+            return label
 
 
 def bundle_adjust(reconstruction: pycolmap.Reconstruction, mapper_options: MapperOptions,

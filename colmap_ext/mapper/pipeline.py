@@ -56,8 +56,11 @@ class IncrementalMapper:
     """Grows one model from an initial pair over a set of images."""
 
     def __init__(self, model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
-                 timer: StageTimer, progress: tqdm | None) -> None:
+                 timer: StageTimer, progress: tqdm | None, final_adjustment: bool = True) -> None:
         self.model = model
+        # False: the model ends on its last filtering, not on a global adjustment (a
+        # cluster of the hierarchical mapper, which adjusts the joined model as a whole).
+        self.final_adjustment = final_adjustment
         self.matches = matches
         self.graph = pair_graph(matches)
         # Raw matches of every pair, verified or not: putative 2D-3D correspondences for
@@ -98,7 +101,11 @@ class IncrementalMapper:
             return False
         while self._register_next():
             pass
-        self._global_adjustment(final=True)
+        if self.final_adjustment:
+            self._global_adjustment(final=True)
+        else:
+            with self.timer("filtering"):
+                filter_points(self.model, list(self.model.poses), self.options, final=True)
         return True
 
     def _initialize(self, excluded_pairs: set[Pair]) -> bool:
@@ -261,10 +268,12 @@ class IncrementalMapper:
 def reconstruct(db: DatabaseContents, options: MapperOptions,
                 image_names: list[str] | None = None, timer: StageTimer | None = None,
                 progress: bool = True, existing: pycolmap.Reconstruction | None = None,
-                ) -> list[pycolmap.Reconstruction]:
+                final_adjustment: bool = True) -> list[pycolmap.Reconstruction]:
     """All models that the database's images give, largest first (nothing written).
     `existing`, a model of this database's images, is continued: the first model starts
-    from its poses and points, and the database's other images are registered into it."""
+    from its poses and points, and the database's other images are registered into it.
+    `final_adjustment` False leaves out each model's closing global adjustment (see
+    IncrementalMapper)."""
     options.check()
     timer = timer or StageTimer()
     existing_ids = _existing_image_ids(db, existing) if existing is not None else {}
@@ -287,7 +296,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     bar = tqdm(total=len(image_ids), desc="registered", unit="image", disable=not progress)
     try:
         while len(remaining) >= 2 and len(models) < max_num_models:
-            mapper = IncrementalMapper(model, matches, options, timer, bar)
+            mapper = IncrementalMapper(model, matches, options, timer, bar, final_adjustment)
             if not mapper.run(excluded_pairs):
                 break
             if model.num_registered >= options.min_model_size:
