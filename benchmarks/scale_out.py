@@ -15,7 +15,7 @@ task, as a Ray task with one CPU runs) the section projects the time on 8, 32 an
 workers.
 
     python benchmarks/scale_out.py [--sizes 1000,2000] [--leaf_max_num_images 250]
-        [--image_overlap 50] [--work_dir DIR] [--markdown BENCHMARKS.md]
+        [--image_overlap 50] [--runs 1] [--work_dir DIR] [--markdown BENCHMARKS.md]
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ import datetime
 import json
 import math
 import shutil
+import statistics
 import sys
 import time
 from pathlib import Path
@@ -76,35 +77,55 @@ def command(mapper: str, database: Path, images: Path, output: Path, args) -> li
 def measure(name: str, size: int, args, work: Path) -> tuple[dict, dict]:
     import mapper_speed
 
-    from colmap_ext.evaluate import evaluate
     from colmap_ext.ground_truth import read_ground_truth
 
     mapper_speed.SYNTHETIC_SIZES.setdefault(name, size)
     print(f"=== {name}: preparing the database ...", file=sys.stderr, flush=True)
     prepared = mapper_speed.prepare_synthetic(name, work, args.seed)
     truth = read_ground_truth(prepared.ground_truth)
-    results = {}
-    for mapper in args.mappers:
-        folder = work / name / "runs" / mapper
-        shutil.rmtree(folder, ignore_errors=True)
-        folder.mkdir(parents=True)
-        shutil.copyfile(prepared.database, folder / "database.db")
-        run = mapper_speed.timed_run(
-            command(mapper, folder / "database.db", prepared.image_path, folder / "out", args),
-            folder / "log.txt")
-        print(f"  {name} {mapper}: {run['time_s']:.1f} s, {run['peak_mib']:.0f} MiB, exit "
-              f"{run['exit_code']}", file=sys.stderr, flush=True)
-        model = mapper_speed.largest_model(folder / "out") if (folder / "out").is_dir() else None
-        if model is not None and model.num_reg_images() >= 2:
-            report = evaluate(model, truth)
-            run.update(num_registered=model.num_reg_images(),
-                       num_models=sum(1 for p in (folder / "out").iterdir() if p.name.isdigit()),
-                       R_err_max_deg=report["R_err_max_deg"], C_err_max=report["C_err_max"])
-        summary = folder / "out" / "mapper_summary.json"
-        if summary.is_file():
-            run["summary"] = json.loads(summary.read_text())
-        results[mapper] = run
+    results: dict[str, dict] = {}
+    times: dict[str, list[float]] = {mapper: [] for mapper in args.mappers}
+    for round_index in range(args.runs):
+        # The order turns each round, so that no mapper always runs first (or after a
+        # given one) on a machine whose speed drifts.
+        shift = round_index % len(args.mappers)
+        for mapper in args.mappers[shift:] + args.mappers[:shift]:
+            run = measure_once(name, mapper, prepared, truth, args, work)
+            times[mapper].append(run["time_s"])
+            if mapper in results:
+                run["peak_mib"] = max(run["peak_mib"], results[mapper]["peak_mib"])
+            results[mapper] = run  # the last round's model and stages
+    for mapper, run in results.items():
+        run.update(time_s=statistics.median(times[mapper]), times_s=times[mapper])
     return prepared.__dict__, results
+
+
+def measure_once(name: str, mapper: str, prepared, truth, args, work: Path) -> dict:
+    """One mapper's whole process on a fresh copy of the database; its time, peak
+    memory, and the largest model's registered images and errors."""
+    import mapper_speed
+
+    from colmap_ext.evaluate import evaluate
+
+    folder = work / name / "runs" / mapper
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    shutil.copyfile(prepared.database, folder / "database.db")
+    run = mapper_speed.timed_run(
+        command(mapper, folder / "database.db", prepared.image_path, folder / "out", args),
+        folder / "log.txt")
+    print(f"  {name} {mapper}: {run['time_s']:.1f} s, {run['peak_mib']:.0f} MiB, exit "
+          f"{run['exit_code']}", file=sys.stderr, flush=True)
+    model = mapper_speed.largest_model(folder / "out") if (folder / "out").is_dir() else None
+    if model is not None and model.num_reg_images() >= 2:
+        report = evaluate(model, truth)
+        run.update(num_registered=model.num_reg_images(),
+                   num_models=sum(1 for p in (folder / "out").iterdir() if p.name.isdigit()),
+                   R_err_max_deg=report["R_err_max_deg"], C_err_max=report["C_err_max"])
+    summary = folder / "out" / "mapper_summary.json"
+    if summary.is_file():
+        run["summary"] = json.loads(summary.read_text())
+    return run
 
 
 def projection(num_images: int, run: dict) -> dict[int, float] | None:
@@ -141,7 +162,8 @@ def section(all_results: dict, args, elapsed_s: float) -> str:
                 f"{run['num_registered']} ({run['num_models']} models)" if ok else "failed",
                 f"{run['R_err_max_deg']:.3f}" if ok else "–",
                 f"{run['C_err_max']:.4f}" if ok else "–",
-                f"{run['time_s']:.1f}",
+                f"{run['time_s']:.1f}" + (f" ({min(run['times_s']):.1f}-{max(run['times_s']):.1f})"
+                                          if len(run["times_s"]) > 1 else ""),
                 f"{run['time_s'] / flat['time_s']:.2f}x" if flat.get("time_s") else "–",
                 f"{run['peak_mib']:.0f}"])
             stages = run.get("summary", {}).get("time_s", {})
@@ -158,13 +180,16 @@ def section(all_results: dict, args, elapsed_s: float) -> str:
                     notes.append(f"{name} projected: " + ", ".join(
                         f"{n} workers {seconds:.0f} s" for n, seconds in projected.items()))
     headings = ["set", "images", "mapper", "registered", "R_err max [deg]", "C_err max",
-                "time [s]", "time / flat", "peak memory per process [MiB]"]
+                "time [s]" if args.runs == 1 else "time [s] median (min-max)", "time / flat", "peak memory per process [MiB]"]
     return "\n".join([
         "## Scale-out: hierarchical mapping", "",
         f"`python benchmarks/scale_out.py --sizes {','.join(map(str, args.sizes))} "
-        f"--leaf_max_num_images {args.leaf_max_num_images} --image_overlap {args.image_overlap}` "
-        f"on {datetime.date.today().isoformat()} ({elapsed_s / 60:.1f} min in all), seed {args.seed}, "
-        "one run each.",
+        f"--leaf_max_num_images {args.leaf_max_num_images} --image_overlap {args.image_overlap} "
+        f"--runs {args.runs}` on {datetime.date.today().isoformat()} ({elapsed_s / 60:.1f} min in "
+        f"all), seed {args.seed}; "
+        + ("one run each." if args.runs == 1 else
+           f"{args.runs} runs each, the order turning each round: median time (min-max), "
+           "the largest peak, the last round's model."),
         f"- machine: {machine_line()}; shared with other engineers' test runs while measured, "
         "so times carry that noise", f"- versions: {versions_line()}", "",
         markdown_table(headings, rows), "", *[f"- {note}" for note in notes]])
@@ -178,6 +203,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--leaf_max_num_images", type=int, default=250)
     parser.add_argument("--image_overlap", type=int, default=50)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--runs", type=int, default=1,
+                        help="runs of each mapper, alternating; medians are reported")
     parser.add_argument("--work_dir", default=None,
                         help="keep databases and models here; databases found there are reused")
     parser.add_argument("--markdown", default=None, help="also write the section to this file")
