@@ -180,7 +180,8 @@ def section(all_results: dict, args, elapsed_s: float) -> str:
                     notes.append(f"{name} projected: " + ", ".join(
                         f"{n} workers {seconds:.0f} s" for n, seconds in projected.items()))
     headings = ["set", "images", "mapper", "registered", "R_err max [deg]", "C_err max",
-                "time [s]" if args.runs == 1 else "time [s] median (min-max)", "time / flat", "peak memory per process [MiB]"]
+                "time [s]" if args.runs == 1 else "time [s] median (min-max)", "time / flat",
+                "peak memory per process [MiB]"]
     return "\n".join([
         "## Scale-out: hierarchical mapping", "",
         f"`python benchmarks/scale_out.py --sizes {','.join(map(str, args.sizes))} "

@@ -246,7 +246,8 @@ def similarity(target: ClusterModel, source: ClusterModel,
                                                   return_indices=True)
     if len(shared) < options.min_shared_images:
         return None
-    target_poses, source_poses = target.cams_from_world[in_target], source.cams_from_world[in_source]
+    target_poses = target.cams_from_world[in_target]
+    source_poses = source.cams_from_world[in_source]
     centres_target = target.centres()[in_target]
     centres_source = source.centres()[in_source]
     extent = np.sqrt(np.mean(np.sum((centres_target - centres_target.mean(0)) ** 2, axis=1)))
@@ -291,7 +292,8 @@ def refine_similarity(target_poses: np.ndarray, source_poses: np.ndarray,
     walk or along a sequence (about the line they lie on); each image's two rotations
     fix it to their noise. A wrong rotation at a junction is a bend that the final
     adjustment straightens only slowly."""
-    rotation = mean_rotation(np.transpose(target_poses[:, :, :3], (0, 2, 1)) @ source_poses[:, :, :3])
+    rotation = mean_rotation(np.transpose(target_poses[:, :, :3], (0, 2, 1))
+                             @ source_poses[:, :, :3])
     moved = centres_source @ rotation.T
     offsets_target = centres_target - centres_target.mean(axis=0)
     offsets_moved = moved - moved.mean(axis=0)

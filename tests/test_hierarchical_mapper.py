@@ -136,7 +136,8 @@ def test_similarity_takes_its_rotation_from_the_cameras_along_a_line():
     expected = source_from_target.inverse().rotation.matrix()
 
     def rotation_error_deg(rotation: np.ndarray) -> float:
-        return float(np.degrees(np.arccos(np.clip((np.trace(rotation.T @ expected) - 1) / 2, -1, 1))))
+        cosine = (np.trace(rotation.T @ expected) - 1) / 2
+        return float(np.degrees(np.arccos(np.clip(cosine, -1, 1))))
 
     from_centres = pycolmap.estimate_sim3d(source.centres(), target.centres())
     assert rotation_error_deg(from_centres.rotation.matrix()) > 0.3

@@ -68,7 +68,8 @@ def test_largest_per_row_ranks_as_a_stable_sort(num_columns: int) -> None:
         return (np.pad(order, ((0, 0), (0, missing))),
                 np.pad(taken, ((0, 0), (0, missing)), constant_values=-np.inf))
 
-    index, best, sub_index, sub_best = solvers.largest_per_row(values, 4, subset=subset, k_subset=2)
+    index, best, sub_index, sub_best = solvers.largest_per_row(values, 4, subset=subset,
+                                                               k_subset=2)
     expected_index, expected_best = reference(values, 4)
     expected_sub_index, expected_sub_best = reference(values[:, subset], 2)
     assert (index == expected_index).all() and (best == expected_best).all()
