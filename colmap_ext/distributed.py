@@ -17,9 +17,11 @@ only when an address is given.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import itertools
 import math
 import os
+import signal
 import socket
 import sqlite3
 import tempfile
@@ -543,6 +545,19 @@ def extract_and_match(cluster: Cluster, database_path: Path, image_path: str | o
                                 "images": "by path" if by_path else "as bytes"}
 
 
+def end_with_parent(parent_pid: int) -> None:
+    """In a local pool's worker: be ended (SIGTERM) when the process that started it
+    ends, however it ends; a killed command leaves no worker computing on (Linux's
+    PR_SET_PDEATHSIG; elsewhere nothing is done)."""
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        libc.prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        return
+    if os.getppid() != parent_pid:  # the parent ended before the request took effect
+        os.kill(os.getpid(), signal.SIGTERM)
+
+
 def run_local_or_on_cluster(cluster: Cluster | None, function: Callable,
                             arguments: Sequence[tuple], num_workers: int, desc: str,
                             progress: bool, num_cpus: float = 1) -> Iterable[Any]:
@@ -563,7 +578,8 @@ def run_local_or_on_cluster(cluster: Cluster | None, function: Callable,
 
         # "spawn": pycolmap and Ceres threads do not survive a fork.
         context = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(num_workers, mp_context=context) as pool:
+        with ProcessPoolExecutor(num_workers, mp_context=context, initializer=end_with_parent,
+                                 initargs=(os.getpid(),)) as pool:
             futures = [pool.submit(function, *args) for args in arguments]
             for future in as_completed(futures):
                 yield future.result()

@@ -7,8 +7,11 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
+import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import cv2
@@ -180,3 +183,58 @@ def test_grid_maps_into_one_accurate_model(survey, tmp_path):
     error = np.linalg.norm(align_similarity(estimated, true) - true, axis=1).max()
     assert error < MAX_ALIGNED_CENTRE_ERROR * scene_size
     assert model.compute_mean_reprojection_error() < 1.0
+
+
+def running_children(pid: int) -> set[int]:
+    """Live processes (not zombies) whose parent is `pid`, and that are a local pool's
+    workers (multiprocessing's spawn), from Linux's /proc."""
+    found = set()
+    for stat in Path("/proc").glob("[0-9]*/stat"):
+        try:
+            state, parent = stat.read_text().rsplit(")", 1)[1].split()[:2]
+            command = (stat.parent / "cmdline").read_bytes()
+        except (OSError, ValueError, IndexError):
+            continue
+        if int(parent) == pid and state not in "ZX" and b"spawn_main" in command:
+            found.add(int(stat.parent.name))
+    return found
+
+
+def alive(pid: int) -> bool:
+    try:
+        return (Path("/proc") / str(pid) / "stat").read_text().rsplit(")", 1)[1].split()[0] \
+            not in "ZX"
+    except (OSError, IndexError):
+        return False
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads Linux's /proc")
+def test_killed_command_leaves_no_worker_running(survey, tmp_path):
+    """The command ended by SIGTERM while its two workers map clusters: the workers end
+    with it (none computes on as an orphan), and no model is written."""
+    database, images, _ = survey
+    out = tmp_path / "out"
+    command = subprocess.Popen(
+        [sys.executable, "-m", "colmap_ext", "hierarchical_mapper", "--database_path",
+         str(database), "--image_path", str(images), "--output_path", str(out),
+         "--leaf_max_num_images", str(LEAF_MAX_NUM_IMAGES), "--image_overlap",
+         str(IMAGE_OVERLAP), "--num_workers", "2"],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    workers: set[int] = set()
+    try:
+        deadline = time.monotonic() + 120
+        while len(workers := running_children(command.pid)) < 2:
+            assert command.poll() is None and time.monotonic() < deadline, \
+                "the command ended before its two workers started"
+            time.sleep(0.2)
+        command.send_signal(signal.SIGTERM)
+        command.wait(timeout=30)
+        deadline = time.monotonic() + 30
+        while any(alive(pid) for pid in workers) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not any(alive(pid) for pid in workers)
+        assert not (out / "0").exists()
+    finally:
+        command.kill()
+        for pid in filter(alive, workers):  # orphans of a failed run: not left computing
+            os.kill(pid, signal.SIGKILL)
