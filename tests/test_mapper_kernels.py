@@ -74,6 +74,8 @@ def test_largest_per_row_ranks_as_a_stable_sort(num_columns: int) -> None:
     expected_sub_index, expected_sub_best = reference(values[:, subset], 2)
     assert (index == expected_index).all() and (best == expected_best).all()
     assert (sub_index == expected_sub_index).all() and (sub_best == expected_sub_best).all()
+    none = solvers.largest_per_row(values, 0)
+    assert [array.shape for array in none] == [(40, 0)] * 4
 
 
 @pytest.mark.parametrize("num_threads", [1, 2])

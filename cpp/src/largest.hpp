@@ -41,7 +41,7 @@ inline void largest_per_row(const float* values, int64_t rows, int64_t cols, int
               -std::numeric_limits<float>::infinity());
     std::fill(sub_index + r * k_subset, sub_index + (r + 1) * k_subset, 0);
     int count = 0;
-    for (int64_t c = 0; c < cols; ++c)
+    for (int64_t c = 0; k > 0 && c < cols; ++c)
       keep_largest(row[c], c, k, count, best + r * k, index + r * k);
     if (k_subset == 0) continue;
     count = 0;
