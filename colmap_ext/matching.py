@@ -37,7 +37,6 @@ from tqdm import tqdm
 import solvers
 from colmap_ext.errors import UserError
 from colmap_ext.features import quiet_colmap_logs
-from colmap_ext.mapper.descriptors import take_nearest
 
 MATCHERS = ("auto", "exhaustive", "sequential")
 # "auto": exhaustive up to this many images (n^2 / 2 pairs stay cheap), sequential beyond.
@@ -348,13 +347,13 @@ def exact_matches(descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio:
     block = max(2, EXACT_BLOCK_PRODUCTS // len(b.T))
     for start in range(0, len(a), block):
         dot = a[start:start + block] @ b
-        index, largest = take_nearest(dot.T, 2)  # the columns' two largest
+        index, largest, _, _ = solvers.largest_per_row(dot.T, 2)  # the columns' two largest
         best, first, second = index[:, 0], largest[:, 0], largest[:, 1]
         backward_second = np.maximum(np.maximum(backward_second, second),
                                      np.minimum(backward_first, first))
         backward = np.where(first > backward_first, best + start, backward)
         backward_first = np.maximum(backward_first, first)
-        index, largest = take_nearest(dot, 2)
+        index, largest, _, _ = solvers.largest_per_row(dot, 2)
         forward[start:start + len(dot)] = index[:, 0]
         forward_ok[start:start + len(dot)] = _passes_ratio_test(largest[:, 0], largest[:, 1],
                                                                 max_ratio, max_distance)

@@ -38,13 +38,6 @@ def _similarity_blocks(queries: np.ndarray,
         yield start, unit_descriptors(queries[start:start + block]) @ database.T
 
 
-def take_nearest(similarity: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per row, the columns of the k largest similarities (cosines, dot products),
-    largest first (the first column on ties), and those values."""
-    index, best, _, _ = solvers.largest_per_row(similarity, k)
-    return index, best
-
-
 def _angles(cosines: np.ndarray) -> np.ndarray:
     return np.arccos(np.clip(cosines, -1.0, 1.0))
 
