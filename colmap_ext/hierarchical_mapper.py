@@ -32,9 +32,17 @@ from colmap_ext.database import DatabaseContents, check_database_file, read_data
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from_flags
 from colmap_ext.mapper.bundle_adjustment import adjustment_options, posed_images
-from colmap_ext.mapper.options import MapperOptions, MergingOptions
+from colmap_ext.mapper.options import BundleAdjustmentOptions, MapperOptions, MergingOptions
 from colmap_ext.mapper.pipeline import StageTimer, reconstruct, summarize
 from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json, write_models
+
+
+# The clusters' mapper options where no --Mapper.* flag is given: the flat mapper's, but
+# a global adjustment each time a cluster's model grows by half (the flat mapper's, as
+# COLMAP's, at every tenth). Every cluster is adjusted again within the joined model;
+# the sparser schedule is most of what makes a cluster task cheaper than COLMAP's (see
+# BENCHMARKS.md, scale-out). Small models need the frequent one: it stays in `mapper`.
+MAPPER_DEFAULTS = MapperOptions(bundle_adjustment=BundleAdjustmentOptions(global_images_ratio=1.5))
 
 
 @dataclass(frozen=True)
@@ -444,7 +452,8 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
                          ) -> tuple[list[pycolmap.Reconstruction], list[ClusterReport]]:
     """Partition, map every cluster (Ray tasks on `cluster`, a distributed.Cluster, else
     a local pool), join and adjust. Returns the models, largest first (nothing
-    written), and a report per cluster."""
+    written), and a report per cluster. The command maps with MAPPER_DEFAULTS under its
+    flags."""
     from colmap_ext.distributed import run_local_or_on_cluster
 
     timer = timer or StageTimer()
@@ -502,7 +511,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--output_type", default="BIN", choices=["BIN", "TXT", "bin", "txt"])
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a model already in OUTPUT_PATH/0")
-    add_option_flags(parser)
+    add_option_flags(parser, base=MAPPER_DEFAULTS)
 
 
 def main(database_path: str, image_path: str, output_path: str,
@@ -522,7 +531,7 @@ def main(database_path: str, image_path: str, output_path: str,
         raise UserError(f"--output_type must be BIN or TXT, got {output_type!r}")
     if ray_address is not None:
         check_address(ray_address)
-    mapper_options = options_from_flags(flags)
+    mapper_options = options_from_flags(flags, base=MAPPER_DEFAULTS)
     check_database_file(Path(database_path))
     images = Path(image_path)
     if not images.is_dir():

@@ -37,9 +37,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_option_flags(parser)
 
 
-def add_option_flags(parser: argparse.ArgumentParser) -> None:
+def add_option_flags(parser: argparse.ArgumentParser, base: MapperOptions | None = None) -> None:
     """COLMAP's mapper options (flags.FLAGS) as flags whose destinations are the options'
-    names, None when not given: what `options_from_flags` reads."""
+    names, None when not given: what `options_from_flags` reads over `base`, the
+    command's defaults (shown in the help)."""
     group = parser.add_argument_group("COLMAP's mapper options",
                                       "COLMAP 3.8's and 4.x's names; 0/1 or false/true for "
                                       "booleans. Not applicable: accepted, and named in the "
@@ -47,7 +48,7 @@ def add_option_flags(parser: argparse.ArgumentParser) -> None:
     for flag in FLAGS:
         group.add_argument(*(f"--{name}" for name in flag.names), dest=flag.name,
                            type=flag.parse, default=None, metavar="VALUE",
-                           help=help_text(flag))
+                           help=help_text(flag, base))
 
 
 def options_from_flags(flags: dict[str, Any], project_values: dict[str, Any] | None = None,

@@ -62,12 +62,11 @@ class Flag:
     def names(self) -> tuple[str, ...]:
         return (self.name, *self.aliases)
 
-    @property
-    def effective_default(self) -> Any:
-        """The value used when the option is not given."""
+    def effective_default(self, base: MapperOptions | None = None) -> Any:
+        """The value used when the option is not given, over `base` (default: MapperOptions())."""
         if self.field is None:
             return self.default
-        return get_field(MapperOptions(), self.field)
+        return get_field(base or MapperOptions(), self.field)
 
     @property
     def parse(self) -> Callable[[str], Any]:
@@ -383,9 +382,10 @@ def pycolmap_options(options: Any) -> MapperOptions:
     return mapper_options(values)
 
 
-def help_text(flag: Flag) -> str:
-    """The option's `-h` line: what it does here or why it does not apply, and its default."""
-    default = flag.effective_default
+def help_text(flag: Flag, base: MapperOptions | None = None) -> str:
+    """The option's `-h` line: what it does here or why it does not apply, and its
+    default over `base` (the command's defaults; MapperOptions() when None)."""
+    default = flag.effective_default(base)
     if default is None:  # the seed: unseeded, COLMAP 4.x's -1
         default = -1
     text = flag.help if flag.field else f"not applicable: {flag.help}"
