@@ -3,8 +3,9 @@
 The view graph (images joined by verified pairs, weighted by their inliers) is cut into
 clusters of at most `--leaf_max_num_images` images by recursive bisection, and each
 cluster grows by the `--image_overlap` outside images most connected to it. Each
-cluster is mapped on its own by the calibrated mapper (mapper.pipeline.reconstruct): a
-Ray task with `--ray_address`, else a process of a local pool of `--num_workers`.
+cluster is mapped on its own by the calibrated mapper (mapper.pipeline.reconstruct, with
+fewer global adjustments: MAPPER_DEFAULTS): a Ray task with `--ray_address`, else a process
+of a local pool of `--num_workers`.
 The cluster models are then brought into one frame along a maximum spanning tree of
 their overlaps, each link the similarity their shared images agree on (merging.py's
 rule: rotations and directions of the centres within a few degrees; the rotation
@@ -39,9 +40,10 @@ from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json, wri
 
 # The clusters' mapper options where no --Mapper.* flag is given: the flat mapper's, but
 # a global adjustment each time a cluster's model grows by half (the flat mapper's, as
-# COLMAP's, at every tenth). Every cluster is adjusted again within the joined model;
-# the sparser schedule is most of what makes a cluster task cheaper than COLMAP's (see
-# BENCHMARKS.md, scale-out). Small models need the frequent one: it stays in `mapper`.
+# COLMAP's, each time it grows by a tenth). Every cluster is adjusted again within the
+# joined model, and the sparser schedule is most of what makes a cluster task cheaper
+# than COLMAP's (BENCHMARKS.md, scale-out). Small models need the frequent schedule,
+# so `mapper` keeps it.
 MAPPER_DEFAULTS = MapperOptions(bundle_adjustment=BundleAdjustmentOptions(global_images_ratio=1.5))
 
 
