@@ -363,6 +363,21 @@ def test_temple_sparse_ring(real_databases, tmp_path):
     assert report["C_err_max"] < 0.02
 
 
+def test_temple_final_filter_over_seeds(real_databases, tmp_path):
+    """The final adjustment's filter (FilteringOptions.final_max_error_ratio) drops the
+    near-miss observations that, kept or not by each seed's RANSAC draws, pulled on the
+    poses: without it R_err max measured 0.308 / 0.333 / 0.307 deg on seeds 0 / 1 / 2."""
+    database, images, truth = real_databases["templeSparseRing"]
+    errors = []
+    for seed in (0, 1, 2):
+        reconstructions = run(database, images, tmp_path / str(seed), MapperOptions(seed=seed),
+                              progress=False)
+        report = evaluate(reconstructions[0], truth)
+        assert report["num_registered"] == 16
+        errors.append(report["R_err_max_deg"])
+    assert max(errors) < 0.31  # measured 0.273 / 0.292 / 0.273 deg
+
+
 def test_dino_sparse_ring(real_databases, tmp_path):
     """Two models of 6 images for seeds 0, 1, 2: 7-12 first, then 1-4 with 15-16."""
     database, images, truth = real_databases["dinoSparseRing"]

@@ -13,17 +13,21 @@ from colmap_ext.mapper.options import MapperOptions
 
 
 def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
-                  final: bool = False) -> tuple[int, int]:
-    """Filter the observations in `image_ids` and the points they see. Before the end
-    (`final` False), points younger than the grace period may keep two-view tracks.
+                  final: bool = False, max_reproj_error_px: float | None = None
+                  ) -> tuple[int, int]:
+    """Filter the observations in `image_ids` (reprojection error above
+    `max_reproj_error_px`, by default the options') and the points they see. Before the
+    end (`final` False), points younger than the grace period may keep two-view tracks.
     Returns (observations removed, points removed)."""
+    if max_reproj_error_px is None:
+        max_reproj_error_px = options.filtering.max_reproj_error_px
     removed_observations = 0
     touched: set[int] = set()
     for image_id in image_ids:
         kps, point_ids = model.observations(image_id)
         touched.update(point_ids.tolist())
         errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-        for point_id in point_ids[errors > options.filtering.max_reproj_error_px].tolist():
+        for point_id in point_ids[errors > max_reproj_error_px].tolist():
             model.delete_observation(point_id, image_id)
             removed_observations += 1
     candidates = [p for p in touched if p in model.tracks]
@@ -34,6 +38,22 @@ def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
             model.delete_point(point_id)
             removed_points += 1
     return removed_observations, removed_points
+
+
+def final_max_reproj_error(model: Model, options: MapperOptions) -> float:
+    """The final filter's limit (px): `final_max_error_ratio` times the median
+    reprojection error of the model's observations, if below max_reproj_error_px.
+    Where keypoints are good to a few tenths of a pixel, an observation two pixels off
+    is a near-miss match, and under the robust loss it still pulls on the poses: which
+    of them a run keeps depends on its RANSAC draws, and so did its poses."""
+    filtering = options.filtering
+    errors = [model.reprojection_errors(image_id, kps, model.xyz[point_ids])
+              for image_id in model.poses
+              for kps, point_ids in [model.observations(image_id)]]
+    if filtering.final_max_error_ratio == 0 or not any(len(e) for e in errors):
+        return filtering.max_reproj_error_px
+    median = float(np.median(np.concatenate(errors)))
+    return min(filtering.max_reproj_error_px, filtering.final_max_error_ratio * median)
 
 
 def _supported(model: Model, point_id: int, wide_enough: bool, options: MapperOptions,

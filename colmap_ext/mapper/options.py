@@ -146,6 +146,10 @@ class FilteringOptions:
     # A finished model keeps an image whose points fix its rotation to within this many
     # times the keypoint noise (filtering.rotation_uncertainty).
     max_rotation_uncertainty: float = 15.0
+    # The final global adjustment also drops observations beyond this many times the
+    # model's median reprojection error, then adjusts once more; 0: max_reproj_error_px
+    # alone.
+    final_max_error_ratio: float = 10.0
 
     def check(self) -> None:
         _require(self.max_reproj_error_px > 0, self, "max_reproj_error_px", "> 0")
@@ -153,6 +157,7 @@ class FilteringOptions:
         _require(self.min_track_length >= 2, self, "min_track_length", ">= 2")
         _require(self.track_grace_registrations >= 0, self, "track_grace_registrations", ">= 0")
         _require(self.max_rotation_uncertainty > 0, self, "max_rotation_uncertainty", "> 0")
+        _require(self.final_max_error_ratio >= 0, self, "final_max_error_ratio", ">= 0")
 
 
 @dataclass
