@@ -249,7 +249,7 @@ class IncrementalMapper:
     def _global_adjustment(self, final: bool = False) -> None:
         """Adjust every registered image, then filter. `final`, the model's end: two
         rounds, their filter with the final limit (final_max_reproj_error), and one more
-        adjustment on what it kept."""
+        adjustment if the last filter dropped observations."""
         model, options = self.model, self.options
         registered = list(model.poses)
         max_iterations = options.bundle_adjustment.global_max_iterations
@@ -257,8 +257,9 @@ class IncrementalMapper:
             self._bundle_adjust(registered, max_iterations, refine_intrinsics=True)
             with self.timer("filtering"):
                 limit = final_max_reproj_error(model, options) if final else None
-                filter_points(model, registered, options, final=final, max_reproj_error_px=limit)
-        if final and options.filtering.final_max_error_ratio > 0:
+                removed, _ = filter_points(model, registered, options, final=final,
+                                           max_reproj_error_px=limit)
+        if final and options.filtering.final_max_error_ratio > 0 and removed:
             self._bundle_adjust(registered, max_iterations, refine_intrinsics=True)
         self.num_images_at_global_ba = model.num_registered
 
