@@ -139,19 +139,28 @@ class Dataset:
 
 
 def find_datasets(root: Path) -> list[Dataset]:
-    """Folders under `root` holding images and exactly one *_par.txt."""
-    datasets = []
-    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
-        gt_files = sorted(folder.glob("*_par.txt"))
-        if len(gt_files) != 1:
-            continue
-        truth = read_ground_truth(gt_files[0])
-        camera = next(iter(truth.cameras.values()))
-        names = [n for n in truth.poses if (folder / n).suffix.lower() in IMAGE_SUFFIXES
-                 and (folder / n).is_file()]
-        datasets.append(Dataset(folder.name, folder, gt_files[0], camera.model.name,
-                                [float(p) for p in camera.params], names))
-    return datasets
+    """The data sets under `root`: every folder with a ground truth (dataset_in)."""
+    return [dataset for folder in sorted(p for p in root.iterdir() if p.is_dir())
+            if (dataset := dataset_in(folder)) is not None]
+
+
+def dataset_in(folder: Path) -> Dataset | None:
+    """The data set of a folder holding one Middlebury *_par.txt or a Strecha gt_cameras/,
+    its images beside it or in images/; None without a ground truth."""
+    pars = sorted(folder.glob("*_par.txt"))
+    if len(pars) == 1:
+        ground_truth = pars[0]
+    elif not pars and (folder / "gt_cameras").is_dir():
+        ground_truth = folder / "gt_cameras"
+    else:
+        return None
+    truth = read_ground_truth(ground_truth)
+    camera = next(iter(truth.cameras.values()))
+    images = folder / "images" if (folder / "images").is_dir() else folder
+    names = [n for n in truth.poses if (images / n).suffix.lower() in IMAGE_SUFFIXES
+             and (images / n).is_file()]
+    return Dataset(folder.name, images, ground_truth, camera.model.name,
+                   [float(p) for p in camera.params], names)
 
 
 def demo_dataset(work: Path, seed: int) -> Dataset:

@@ -130,32 +130,22 @@ def timed_run(command: list[str], log: Path) -> dict:
 
 def real_sets(root: Path) -> dict[str, Path]:
     """Folders under `root` with ground truth: name -> folder."""
-    found = {}
-    for folder in sorted(p for p in root.iterdir() if p.is_dir()):
-        if list(folder.glob("*_par.txt")) or (folder / "gt_cameras").is_dir():
-            found[folder.name] = folder
-    return found
+    from accuracy import find_datasets
+
+    return {dataset.name: root / dataset.name for dataset in find_datasets(root)}
 
 
 def prepare_real(name: str, folder: Path, work: Path) -> PreparedSet:
-    from accuracy import Dataset, build_database
+    from accuracy import build_database, dataset_in
 
-    from colmap_ext.ground_truth import read_ground_truth
-
-    pars = sorted(folder.glob("*_par.txt"))
-    ground_truth = pars[0] if pars else folder / "gt_cameras"
-    truth = read_ground_truth(ground_truth)
-    images = folder / "images" if (folder / "images").is_dir() else folder
-    names = [n for n in truth.poses if (images / n).is_file()]
-    camera = next(iter(truth.cameras.values()))
-    params = [float(p) for p in camera.params]
+    dataset = dataset_in(folder)
     database = work / name / "database.db"
     if not database.exists():
         database.parent.mkdir(parents=True, exist_ok=True)
-        build_database(Dataset(name, images, ground_truth, camera.model.name, params, names),
-                       database)
-    return PreparedSet(name, database, images, ground_truth, len(names), camera.model.name,
-                       ",".join(repr(p) for p in params))
+        build_database(dataset, database)
+    return PreparedSet(name, database, dataset.image_path, dataset.ground_truth,
+                       len(dataset.image_names), dataset.camera_model,
+                       ",".join(repr(p) for p in dataset.camera_params))
 
 
 def prepare_demo(work: Path, seed: int) -> PreparedSet:
