@@ -44,8 +44,8 @@ def final_max_reproj_error(model: Model, options: MapperOptions) -> float:
     """The final filter's limit (px): `final_max_error_ratio` times the median
     reprojection error of the model's observations, if below max_reproj_error_px.
     Where keypoints are good to a few tenths of a pixel, an observation two pixels off
-    is a near-miss match, and under the robust loss it still pulls on the poses: which
-    of them a run keeps depends on its RANSAC draws, and so did its poses."""
+    is a near-miss match that still pulls on the poses under the robust loss; which of
+    them a model holds depends on its run's RANSAC draws, and its poses did too."""
     filtering = options.filtering
     errors = [model.reprojection_errors(image_id, kps, model.xyz[point_ids])
               for image_id in model.poses

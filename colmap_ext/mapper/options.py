@@ -146,9 +146,9 @@ class FilteringOptions:
     # A finished model keeps an image whose points fix its rotation to within this many
     # times the keypoint noise (filtering.rotation_uncertainty).
     max_rotation_uncertainty: float = 15.0
-    # The final global adjustment also drops observations beyond this many times the
-    # model's median reprojection error, then adjusts once more; 0: max_reproj_error_px
-    # alone.
+    # A finished model's filter also drops observations beyond this many times its median
+    # reprojection error, and the model is adjusted again without them; 0:
+    # max_reproj_error_px alone.
     final_max_error_ratio: float = 10.0
 
     def check(self) -> None:
