@@ -41,6 +41,10 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
+
+if TYPE_CHECKING:  # imported where used: a COLMAP worker child loads pycolmap alone
+    from accuracy import Dataset
 
 SCRIPT = Path(__file__).resolve()
 MAPPERS = ("ours", "colmap_incremental", "colmap_global")
@@ -128,22 +132,21 @@ def timed_run(command: list[str], log: Path) -> dict:
 # Sets
 
 
-def real_sets(root: Path) -> dict[str, Path]:
-    """Folders under `root` with ground truth: name -> folder."""
+def real_sets(root: Path) -> dict[str, Dataset]:
+    """The data sets under `root` (accuracy.find_datasets), by name."""
     from accuracy import find_datasets
 
-    return {dataset.name: root / dataset.name for dataset in find_datasets(root)}
+    return {dataset.name: dataset for dataset in find_datasets(root)}
 
 
-def prepare_real(name: str, folder: Path, work: Path) -> PreparedSet:
-    from accuracy import build_database, dataset_in
+def prepare_real(dataset: Dataset, work: Path) -> PreparedSet:
+    from accuracy import build_database
 
-    dataset = dataset_in(folder)
-    database = work / name / "database.db"
+    database = work / dataset.name / "database.db"
     if not database.exists():
         database.parent.mkdir(parents=True, exist_ok=True)
         build_database(dataset, database)
-    return PreparedSet(name, database, dataset.image_path, dataset.ground_truth,
+    return PreparedSet(dataset.name, database, dataset.image_path, dataset.ground_truth,
                        len(dataset.image_names), dataset.camera_model,
                        ",".join(repr(p) for p in dataset.camera_params))
 
@@ -194,9 +197,9 @@ def prepare_synthetic(name: str, work: Path, seed: int) -> PreparedSet:
                        folder / "ground_truth", scene.num_images)
 
 
-def prepare(name: str, data: dict[str, Path], work: Path, seed: int) -> PreparedSet:
+def prepare(name: str, data: dict[str, Dataset], work: Path, seed: int) -> PreparedSet:
     if name in data:
-        return prepare_real(name, data[name], work)
+        return prepare_real(data[name], work)
     if name == "demo":
         return prepare_demo(work, seed)
     return prepare_synthetic(name, work, seed)

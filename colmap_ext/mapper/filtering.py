@@ -13,21 +13,26 @@ from colmap_ext.mapper.options import MapperOptions
 
 
 def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
-                  final: bool = False, max_reproj_error_px: float | None = None
-                  ) -> tuple[int, int]:
-    """Filter the observations in `image_ids` (reprojection error above
-    `max_reproj_error_px`, by default the options') and the points they see. Before the
-    end (`final` False), points younger than the grace period may keep two-view tracks.
+                  final: bool = False, max_error_ratio: float = 0.0) -> tuple[int, int]:
+    """Filter the observations in `image_ids` and the points they see. Before the end
+    (`final` False), points younger than the grace period may keep two-view tracks.
+
+    An observation goes beyond max_reproj_error_px, and with `max_error_ratio` also
+    beyond that many times the median error of these observations. Where keypoints are
+    good to a few tenths of a pixel, an observation two pixels off is a near-miss match
+    that still pulls on the poses under the robust loss; which of them a model holds
+    depends on its run's RANSAC draws, and its poses did too.
     Returns (observations removed, points removed)."""
-    if max_reproj_error_px is None:
-        max_reproj_error_px = options.filtering.max_reproj_error_px
+    limit = options.filtering.max_reproj_error_px
+    if max_error_ratio > 0:
+        limit = min(limit, max_error_ratio * median_reprojection_error(model, image_ids))
     removed_observations = 0
     touched: set[int] = set()
-    for image_id in image_ids:
+    for image_id in image_ids:  # read afresh: a deletion may take a point of a later image
         kps, point_ids = model.observations(image_id)
         touched.update(point_ids.tolist())
         errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-        for point_id in point_ids[errors > max_reproj_error_px].tolist():
+        for point_id in point_ids[errors > limit].tolist():
             model.delete_observation(point_id, image_id)
             removed_observations += 1
     candidates = [p for p in touched if p in model.tracks]
@@ -40,20 +45,11 @@ def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
     return removed_observations, removed_points
 
 
-def final_max_reproj_error(model: Model, options: MapperOptions) -> float:
-    """The final filter's limit (px): `final_max_error_ratio` times the median
-    reprojection error of the model's observations, if below max_reproj_error_px.
-    Where keypoints are good to a few tenths of a pixel, an observation two pixels off
-    is a near-miss match that still pulls on the poses under the robust loss; which of
-    them a model holds depends on its run's RANSAC draws, and its poses did too."""
-    filtering = options.filtering
+def median_reprojection_error(model: Model, image_ids: list[int]) -> float:
+    """The median reprojection error (px) of the observations in `image_ids`; inf if none."""
     errors = [model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-              for image_id in model.poses
-              for kps, point_ids in [model.observations(image_id)]]
-    if filtering.final_max_error_ratio == 0 or not any(len(e) for e in errors):
-        return filtering.max_reproj_error_px
-    median = float(np.median(np.concatenate(errors)))
-    return min(filtering.max_reproj_error_px, filtering.final_max_error_ratio * median)
+              for image_id in image_ids for kps, point_ids in [model.observations(image_id)]]
+    return float(np.median(np.concatenate(errors))) if any(len(e) for e in errors) else np.inf
 
 
 def _supported(model: Model, point_id: int, wide_enough: bool, options: MapperOptions,

@@ -22,7 +22,7 @@ from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.filtering import filter_images, filter_points, final_max_reproj_error
+from colmap_ext.mapper.filtering import filter_images, filter_points
 from colmap_ext.mapper.registration import (descriptor_correspondences, register_image,
                                             track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
@@ -248,18 +248,19 @@ class IncrementalMapper:
 
     def _global_adjustment(self, final: bool = False) -> None:
         """Adjust every registered image, then filter. `final`, the model's end: two
-        rounds, their filter with the final limit (final_max_reproj_error), and one more
-        adjustment if the last filter dropped observations."""
+        rounds, their filter also relative to the model's median error
+        (final_max_error_ratio), and one more adjustment if the last filter dropped
+        observations."""
         model, options = self.model, self.options
         registered = list(model.poses)
         max_iterations = options.bundle_adjustment.global_max_iterations
+        ratio = options.filtering.final_max_error_ratio if final else 0.0
         for _ in range(2 if final else 1):
             self._bundle_adjust(registered, max_iterations, refine_intrinsics=True)
             with self.timer("filtering"):
-                limit = final_max_reproj_error(model, options) if final else None
                 removed, _ = filter_points(model, registered, options, final=final,
-                                           max_reproj_error_px=limit)
-        if final and options.filtering.final_max_error_ratio > 0 and removed:
+                                           max_error_ratio=ratio)
+        if ratio > 0 and removed:
             self._bundle_adjust(registered, max_iterations, refine_intrinsics=True)
         self.num_images_at_global_ba = model.num_registered
 
