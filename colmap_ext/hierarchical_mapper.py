@@ -33,6 +33,7 @@ from colmap_ext.database import DatabaseContents, check_database_file, read_data
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from_flags
 from colmap_ext.mapper.bundle_adjustment import adjustment_options, posed_images
+from colmap_ext.mapper.initial_pair import check_requested_pair
 from colmap_ext.mapper.options import BundleAdjustmentOptions, MapperOptions, MergingOptions
 from colmap_ext.mapper.pipeline import StageTimer, reconstruct, summarize
 from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json, write_models
@@ -459,6 +460,7 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     from colmap_ext.distributed import run_local_or_on_cluster
 
     timer = timer or StageTimer()
+    check_requested_pair(db.images, mapper_options)
     with timer("partition"):
         clusters = partition(db, options)
     if not clusters:
@@ -469,7 +471,7 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     workers = 1 if cluster is not None else min(options.workers(), len(clusters))
     threads = 1 if cluster is not None else max(1, cores // workers)
     task_options = options_from_flags({"Mapper.num_threads": threads}, base=mapper_options)
-    arguments = [(index, database_subset(db, ids), task_options, threads)
+    arguments = [(index, database_subset(db, ids), task_options.choosing_initial_pair(ids), threads)
                  for index, ids in enumerate(clusters)]
     models: list[ClusterModel] = []
     reports: list[ClusterReport] = []

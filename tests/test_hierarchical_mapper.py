@@ -22,8 +22,10 @@ import pytest
 from colmap_ext.database import read_database
 from colmap_ext.evaluate import align_similarity, evaluate
 from colmap_ext.ground_truth import GroundTruth
+from colmap_ext import distributed
+from colmap_ext.errors import UserError
 from colmap_ext.hierarchical_mapper import (MAPPER_DEFAULTS, ClusterModel, HierarchicalOptions,
-                                            partition, similarity)
+                                            hierarchical_mapping, partition, similarity)
 from colmap_ext.mapper.cli import options_from_flags
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
 from colmap_ext.synthetic.scene import Quad, Scene, box_quads, look_at
@@ -185,6 +187,40 @@ def test_grid_maps_into_one_accurate_model(survey, tmp_path):
     error = np.linalg.norm(align_similarity(estimated, true) - true, axis=1).max()
     assert error < MAX_ALIGNED_CENTRE_ERROR * scene_size
     assert model.compute_mean_reprojection_error() < 1.0
+
+
+def test_a_requested_initial_pair_starts_only_the_clusters_that_hold_it(survey, monkeypatch):
+    """--Mapper.init_image_id1/2: a cluster holding both images starts from them, the
+    others choose their own pair (COLMAP's hierarchical mapper asks every cluster for
+    it); an image id the database lacks is refused before any cluster is mapped."""
+    db = read_database(survey[0])
+    tasks = []
+
+    class Mapped(Exception):
+        pass
+
+    def record(cluster, task, arguments, *args, **kwargs):
+        tasks.extend(arguments)
+        raise Mapped
+
+    monkeypatch.setattr(distributed, "run_local_or_on_cluster", record)
+    options = HierarchicalOptions(LEAF_MAX_NUM_IMAGES, IMAGE_OVERLAP)
+    requested = options_from_flags({"Mapper.init_image_id1": 1, "Mapper.init_image_id2": 2},
+                                   base=MAPPER_DEFAULTS)
+    with pytest.raises(Mapped):
+        hierarchical_mapping(db, requested, options, progress=False)
+    starts = {index: (task.initialization.image_id1, task.initialization.image_id2)
+              for index, _, task, _ in tasks}
+    holding = {index for index, cluster_db, _, _ in tasks if {1, 2} <= set(cluster_db.images)}
+    assert holding and len(holding) < len(tasks)
+    assert all(starts[index] == ((1, 2) if index in holding else (-1, -1)) for index in starts)
+
+    tasks.clear()
+    missing = options_from_flags({"Mapper.init_image_id1": 1, "Mapper.init_image_id2": 9999},
+                                 base=MAPPER_DEFAULTS)
+    with pytest.raises(UserError, match="no image with id 9999 in the database"):
+        hierarchical_mapping(db, missing, options, progress=False)
+    assert not tasks
 
 
 def test_clusters_default_to_a_sparser_global_adjustment_schedule():

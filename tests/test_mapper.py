@@ -398,3 +398,17 @@ def test_dino_sparse_ring(real_databases, tmp_path):
         # The second model (1-4, 15, 16): R_err max measured 0.70 to 0.72 deg over seeds
         # 0-4 (seed 3 keeps image 5 too: 7 images, 0.77 deg).
         assert evaluate(reconstructions[1], truth)["R_err_max_deg"] < 2.2
+
+
+def test_requested_initial_pair_starts_the_first_model_only(real_databases, tmp_path):
+    """--Mapper.init_image_id1/2 start the first model; later models choose their own
+    pair (as COLMAP's), rather than asking again for a pair the first model holds.
+    Requesting the pair the mapper chooses itself (images 9 and 10) gives its models."""
+    database, images, truth = real_databases["dinoSparseRing"]
+    chosen = run(database, images, tmp_path / "chosen", MapperOptions(seed=0), progress=False)
+    options = MapperOptions(seed=0)
+    options.initialization.image_id1, options.initialization.image_id2 = 9, 10
+    requested = run(database, images, tmp_path / "requested", options, progress=False)
+    assert [r.num_reg_images() for r in requested.values()] == [6, 6]
+    for a, b in zip(chosen.values(), requested.values()):
+        assert evaluate(a, truth)["per_image"] == evaluate(b, truth)["per_image"]

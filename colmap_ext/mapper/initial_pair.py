@@ -3,6 +3,7 @@ triangulation of the consensus set, guided matching for more (see pipeline)."""
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import numpy as np
@@ -75,12 +76,17 @@ def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray], options: 
     return best
 
 
+def check_requested_pair(image_ids: Iterable[int], options: MapperOptions) -> None:
+    """A UserError unless each requested initial image is one of `image_ids`."""
+    for image_id in (options.initialization.image_id1, options.initialization.image_id2):
+        if image_id >= 0 and image_id not in image_ids:
+            raise UserError(f"--Mapper.init_image_id1/2: no image with id {image_id} in the database")
+
+
 def _requested_pair(model: Model, matches: dict[Pair, np.ndarray],
                     options: MapperOptions) -> TwoViewReconstruction:
     id1, id2 = options.initialization.image_id1, options.initialization.image_id2
-    for image_id in (id1, id2):
-        if image_id not in model.db.images:
-            raise UserError(f"--Mapper.init_image_id1/2: no image with id {image_id} in the database")
+    check_requested_pair(model.db.images, options)
     key = (min(id1, id2), max(id1, id2))
     if key not in matches:
         raise UserError(f"initial images {id1} and {id2} have no verified matches")

@@ -311,6 +311,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
                 models.append(model)
             remaining = [i for i in remaining if i not in model.poses]
             model = Model(db, nearest, remaining)
+            options = options.choosing_initial_pair()
             matches = {p: m for p, m in matches.items() if p[0] in remaining and p[1] in remaining}
     finally:
         bar.close()
