@@ -184,7 +184,8 @@ def test_segmented_object_ring_end_to_end(object_ring, tmp_path: Path, method: s
 
 def test_temple_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
     """Issue 4's real-data target: templeSparseRing from its images and the calibrated
-    intrinsics. Measured R_err max 0.31 deg (seed 0), C_err max 0.013."""
+    intrinsics; issue 15's bound, R_err max at most 0.35 deg on every seed. Measured
+    R_err max 0.222 deg (seed 0; 0.204-0.231 over seeds 0-9), C_err max 0.0097."""
     folder = real_data / "templeSparseRing"
     truth = read_ground_truth(folder)
     camera = next(iter(truth.cameras.values()))
@@ -192,15 +193,16 @@ def test_temple_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
     summary = main(folder, tmp_path / "ws", camera.model.name, params, seed=0)
     report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
     assert report["num_registered"] == 16
-    assert report["R_err_max_deg"] < 0.5
+    assert report["R_err_max_deg"] < 0.35
     assert report["C_err_max"] < 0.02
 
 
 def test_dino_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
     """dinoSparseRing falls apart into two arcs of 8 images (neighbours across the gaps
     share 18-27 matches and hardly any points); the arcs are joined by the similarity
-    that images 6 and 13, posed among the other arc's points, agree on. Measured: one
-    model of 16, R_err max 0.37 deg (seeds 1, 2: 0.38, 0.58), C_err max 0.018."""
+    that images 6 and 13, posed among the other arc's points, agree on. Issue 15's bound:
+    R_err max at most 0.45 deg. Measured: one model of 16, R_err max 0.272 deg (seeds 1,
+    2: 0.274, 0.343; 0.272-0.460 over seeds 0-9), C_err max 0.0104."""
     folder = real_data / "dinoSparseRing"
     truth = read_ground_truth(folder)
     camera = next(iter(truth.cameras.values()))
@@ -209,5 +211,5 @@ def test_dino_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
     assert len(summary["models"]) == 1
     report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
     assert report["num_registered"] == 16
-    assert report["R_err_max_deg"] < 0.5
+    assert report["R_err_max_deg"] < 0.45
     assert report["C_err_max"] < 0.025

@@ -124,10 +124,16 @@ class TriangulationOptions:
     max_reproj_error_px: float = 3.0
     # Smallest angle (deg) between a new point's widest pair of rays.
     min_tri_angle_deg: float = 1.5
+    # A finished model's points are triangulated again from its poses, each observation
+    # within this many times the model's median reprojection error (at most
+    # max_reproj_error_px); 0: the model keeps the points it grew with.
+    retriangulation_max_error_ratio: float = 4.0
 
     def check(self) -> None:
         _require(self.max_reproj_error_px > 0, self, "max_reproj_error_px", "> 0")
         _require(0 <= self.min_tri_angle_deg < 180, self, "min_tri_angle_deg", "in [0, 180)")
+        _require(self.retriangulation_max_error_ratio >= 0, self,
+                 "retriangulation_max_error_ratio", ">= 0")
 
 
 @dataclass

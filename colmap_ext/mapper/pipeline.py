@@ -1,9 +1,11 @@
 """The incremental loop and `run()`: initial pair, then register, triangulate,
 adjust and filter image after image; several models when the images fall apart,
-joined again where they can be (merging.py)."""
+joined again where they can be (merging.py); each finished model triangulated again
+from its final poses."""
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import time
 from collections import defaultdict
@@ -22,7 +24,7 @@ from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.filtering import filter_images, filter_points
+from colmap_ext.mapper.filtering import filter_images, filter_points, median_reprojection_error
 from colmap_ext.mapper.registration import (descriptor_correspondences, register_image,
                                             track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
@@ -135,6 +137,29 @@ class IncrementalMapper:
                                       self._neighbours(image_id, num_images),
                                       self.options, min_views=2)
             self._global_adjustment(final=True)
+
+    def retriangulate(self) -> int:
+        """Triangulate the finished model's points again from its poses, then adjust it
+        (final). The points it grew with were accepted within max_reproj_error_px while
+        the poses were still moving; again from the final poses, each observation must lie
+        within retriangulation_max_error_ratio x the model's median reprojection error,
+        which leaves out the near-miss matches. Returns the number of points."""
+        model, options = self.model, self.options
+        registered = list(model.poses)
+        limit = min(options.triangulation.max_reproj_error_px,
+                    options.triangulation.retriangulation_max_error_ratio *
+                    median_reprojection_error(model, registered))
+        strict = dataclasses.replace(options, triangulation=dataclasses.replace(
+            options.triangulation, max_reproj_error_px=limit))
+        with self.timer("triangulation"):
+            for point_id in list(model.tracks):
+                model.delete_point(point_id)
+            for image_id in model.registration_order:
+                triangulate_image(model, image_id,
+                                  self._neighbours(image_id, options.guided_matching.num_images),
+                                  strict, min_views=2)
+        self._global_adjustment(final=True)
+        return len(model.tracks)
 
     def _advance(self, n: int) -> None:
         if self.progress is not None:
@@ -280,8 +305,8 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     """All models that the database's images give, largest first (nothing written).
     `existing`, a model of this database's images, is continued: the first model starts
     from its poses and points, and the database's other images are registered into it.
-    `final_adjustment` False leaves out each model's closing global adjustment (see
-    IncrementalMapper)."""
+    `final_adjustment` False leaves out each model's closing global adjustment and its
+    retriangulation (see IncrementalMapper)."""
     options.check()
     timer = timer or StageTimer()
     existing_ids = _existing_image_ids(db, existing) if existing is not None else {}
@@ -316,6 +341,9 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     finally:
         bar.close()
     models = merge_models(models, all_matches, options, timer)
+    if final_adjustment and options.triangulation.retriangulation_max_error_ratio > 0:
+        for model in models:
+            _refiner(model, all_matches, options, timer).retriangulate()
     with timer("filtering"):
         for model in models:
             filter_images(model, options)
@@ -344,12 +372,18 @@ def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: 
             return models
         with timer("merging"):
             joined = join(target, source, *found)
-        images = set(joined.image_ids)
-        IncrementalMapper(joined, {p: m for p, m in matches.items()
-                                   if p[0] in images and p[1] in images},
-                          options, timer, None).refine_joined()
+        _refiner(joined, matches, options, timer).refine_joined()
         models = sorted([m for m in models if m is not target and m is not source] + [joined],
                         key=lambda model: (not model.fixed_image_ids, -model.num_registered))
+
+
+def _refiner(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
+             timer: StageTimer) -> IncrementalMapper:
+    """An IncrementalMapper over a finished model's images, to refine it."""
+    images = set(model.image_ids)
+    return IncrementalMapper(model, {p: m for p, m in matches.items()
+                                     if p[0] in images and p[1] in images},
+                             options, timer, None)
 
 
 def _existing_image_ids(db: DatabaseContents,
