@@ -8,7 +8,9 @@ step is one call from Python and one command from the shell.
 from __future__ import annotations
 
 import argparse
+import ctypes
 import importlib
+import os
 import sys
 from typing import NoReturn
 
@@ -31,6 +33,23 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("colmap_ext.demo", "Render a synthetic ring scene, reconstruct it and "
              "measure the result."),
 }
+
+
+# glibc's mallopt parameter for the most malloc arenas.
+M_ARENA_MAX = -8
+
+
+def limit_malloc_arenas(count: int = 2) -> None:
+    """At most `count` malloc arenas, as MALLOC_ARENA_MAX would (unless the user set it).
+    glibc gives threads that allocate arenas of their own, up to eight per core, and
+    memory freed in one stays resident: with Ceres's and the descriptor search's
+    threads that is tens of MiB of peak memory (BENCHMARKS.md). Not glibc: nothing."""
+    if "MALLOC_ARENA_MAX" in os.environ:
+        return
+    try:
+        ctypes.CDLL(None).mallopt(M_ARENA_MAX, count)
+    except (OSError, AttributeError):
+        pass
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -61,6 +80,7 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    limit_malloc_arenas()  # before any thread starts: imports start BLAS's
     argv = sys.argv[1:] if argv is None else argv
     try:
         parser = build_parser(argv)  # imports the subcommand: Ctrl-C may come that early

@@ -158,6 +158,10 @@ class IncrementalMapper:
                 triangulate_image(model, image_id,
                                   self._neighbours(image_id, options.guided_matching.num_images),
                                   strict, min_views=2)
+        with self.timer("filtering"):
+            # The points the final filter would drop anyway (two-view tracks, narrow
+            # angles) go first: the adjustment then solves the model's size, not twice it.
+            filter_points(model, registered, options, final=True)
         self._global_adjustment(final=True)
         return len(model.tracks)
 
