@@ -129,6 +129,10 @@ class TriangulationOptions:
     # max_reproj_error_px); 0: the model keeps the points it grew with.
     retriangulation_max_error_ratio: float = 4.0
 
+    @property
+    def retriangulates(self) -> bool:
+        return self.retriangulation_max_error_ratio > 0
+
     def check(self) -> None:
         _require(self.max_reproj_error_px > 0, self, "max_reproj_error_px", "> 0")
         _require(0 <= self.min_tri_angle_deg < 180, self, "min_tri_angle_deg", "in [0, 180)")

@@ -162,7 +162,8 @@ class IncrementalMapper:
             # The points the final filter would drop anyway (two-view tracks, narrow
             # angles) go first: the adjustment then solves the model's size, not twice it.
             filter_points(model, registered, options, final=True)
-        self._global_adjustment(final=True)
+        # One round: the observations are fresh, and a second changed nothing measured.
+        self._global_adjustment(final=True, rounds=1)
         return len(model.tracks)
 
     def _advance(self, n: int) -> None:
@@ -275,8 +276,8 @@ class IncrementalMapper:
         with self.timer("filtering"):
             filter_points(self.model, local, options)
 
-    def _global_adjustment(self, final: bool = False) -> None:
-        """Adjust every registered image, then filter. `final`, the model's end: two
+    def _global_adjustment(self, final: bool = False, rounds: int = 2) -> None:
+        """Adjust every registered image, then filter. `final`, the model's end: `rounds`
         rounds, their filter also relative to the model's median error
         (final_max_error_ratio), and one more adjustment if the last filter dropped
         observations."""
@@ -284,7 +285,7 @@ class IncrementalMapper:
         registered = list(model.poses)
         max_iterations = options.bundle_adjustment.global_max_iterations
         ratio = options.filtering.final_max_error_ratio if final else 0.0
-        for _ in range(2 if final else 1):
+        for _ in range(rounds if final else 1):
             self._bundle_adjust(registered, max_iterations, refine_intrinsics=True)
             with self.timer("filtering"):
                 removed, _ = filter_points(model, registered, options, final=final,
@@ -345,7 +346,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     finally:
         bar.close()
     models = merge_models(models, all_matches, options, timer)
-    if final_adjustment and options.triangulation.retriangulation_max_error_ratio > 0:
+    if final_adjustment and options.triangulation.retriangulates:
         for model in models:
             _refiner(model, all_matches, options, timer).retriangulate()
     with timer("filtering"):
