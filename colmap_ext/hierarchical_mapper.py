@@ -471,8 +471,8 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     workers = 1 if cluster is not None else min(options.workers(), len(clusters))
     threads = 1 if cluster is not None else max(1, cores // workers)
     task_options = options_from_flags({"Mapper.num_threads": threads}, base=mapper_options)
-    arguments = [(index, database_subset(db, ids), task_options.choosing_initial_pair(ids), threads)
-                 for index, ids in enumerate(clusters)]
+    arguments = [(index, database_subset(db, ids), task_options.choosing_initial_pair(ids),
+                  threads) for index, ids in enumerate(clusters)]
     models: list[ClusterModel] = []
     reports: list[ClusterReport] = []
     with timer("cluster mapping"):
