@@ -19,11 +19,11 @@ import numpy as np
 import pycolmap
 import pytest
 
+from colmap_ext import distributed
 from colmap_ext.database import read_database
+from colmap_ext.errors import UserError
 from colmap_ext.evaluate import align_similarity, evaluate
 from colmap_ext.ground_truth import GroundTruth
-from colmap_ext import distributed
-from colmap_ext.errors import UserError
 from colmap_ext.hierarchical_mapper import (MAPPER_DEFAULTS, ClusterModel, HierarchicalOptions,
                                             hierarchical_mapping, partition, similarity)
 from colmap_ext.mapper.cli import options_from_flags
