@@ -99,11 +99,15 @@ def test_ring_end_to_end(ring_run) -> None:
         json.loads(json.dumps(summary))
     assert summary["inputs"]["seed"] == 0 and summary["features"]["num_images"] == 10
     assert summary["matching"]["matcher"] == "exhaustive"
-    assert summary["models"][0]["num_registered"] >= 6
-    # Every image registered, in one model or another (measured: 7 + 3).
-    names = [image.name for model in summary["models"]
-             for image in pycolmap.Reconstruction(model["path"]).images.values()]
-    assert sorted(names) == scene.image_names
+    assert summary["models"][0]["num_registered"] >= 8
+    # Every model's poses are the true ones. Wrong correspondences on the scene's repeated
+    # texture agree on poses about 10 deg off; the registration's epipolar check turns
+    # them down (measured: one model of 8 images at R_err max 0.35 deg; before the check,
+    # 7 + 3 images, the 7 up to 44.7 deg off).
+    truth = GroundTruth(dict(zip(scene.image_names, scene.cams_from_world)), {})
+    for entry in summary["models"]:
+        report = evaluate(pycolmap.Reconstruction(entry["path"]), truth)
+        assert report["R_err_max_deg"] < 2.5 and report["C_err_max"] < 0.12, entry["path"]
     assert set(summary["time_s"]) == {"features", "matching", "verification", "mapper", "total"}
     model = pycolmap.Reconstruction(workspace / "sparse" / "0")
     assert list(model.cameras[1].params) == pytest.approx(list(CAMERA.params))
@@ -112,11 +116,10 @@ def test_ring_end_to_end(ring_run) -> None:
 
 
 @pytest.mark.xfail(strict=True, reason=(
-    "product bug: the 10-view ring gives models of 7 and 3 images, the first with R_err "
-    "max 44.7 deg and C_err max 2.6 (seed 0; 21.7 deg for seed 2, scene seed 2 6 + 4 "
-    "images at 11-12 deg). Verification keeps pairs 36-216 deg apart with 15-46 inliers "
-    "and relative rotations 18-124 deg wrong (0-6, 1-4, 1-5, 1-7, 4-8, 5-7), and the "
-    "mapper registers on them"))
+    "product gap: the 10-view ring gives one model of 8 images (R_err max 0.35 deg); "
+    "ring0002 and ring0003 stay out. Few of their correspondences are true (16 of 137 "
+    "for ring0002), and P3P on them finds poses 10 deg off that the epipolar check turns "
+    "down. Scene seed 2: models of 4, 3 and 3 images, each within 0.4 deg, not merged"))
 def test_ring_end_to_end_matches_the_true_poses(ring_run) -> None:
     """The ten views make one model of all ten, its poses as accurate as the 16-view
     ring of the object alone at this resolution gives (R_err max 0.86 deg, C_err max

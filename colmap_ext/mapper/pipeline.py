@@ -25,8 +25,8 @@ from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 from colmap_ext.mapper.filtering import filter_images, filter_points, median_reprojection_error
-from colmap_ext.mapper.registration import (descriptor_correspondences, register_image,
-                                            track_correspondences)
+from colmap_ext.mapper.registration import (Outcome, descriptor_correspondences,
+                                            register_image, track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.model_io import output_folder, read_model, write_json, write_models
@@ -250,17 +250,23 @@ class IncrementalMapper:
 
     def _register(self, image_id: int) -> bool:
         """P3P on correspondences through verified matches and descriptor matches to
-        nearby points; failing that, through raw matches too (pairs whose two-view
+        nearby points. A pose off the verified matches' epipolar lines is tried again
+        through verified matches alone (descriptor matches on repeated texture can pull
+        it away); too few inliers, through raw matches too (pairs whose two-view
         verification failed can still hold enough inliers for an absolute pose)."""
         model, options = self.model, self.options
         neighbours = self._neighbours(image_id, options.guided_matching.num_images)
-        kps, point_ids = descriptor_correspondences(model, image_id, neighbours, options)
-        for graph in (self.graph, self.raw_graph):
-            more_kps, more_ids = track_correspondences(model, image_id, graph)
-            kps, point_ids = np.concatenate([kps, more_kps]), np.concatenate([point_ids, more_ids])
-            if register_image(model, image_id, kps, point_ids, options):
-                return True
-        return False
+        descriptor = descriptor_correspondences(model, image_id, neighbours, options)
+        verified = track_correspondences(model, image_id, self.graph)
+        outcome = register_image(model, image_id, *_joined(descriptor, verified), self.graph, options)
+        if outcome is Outcome.INCONSISTENT:
+            outcome = register_image(model, image_id, *verified, self.graph, options)
+        elif outcome is Outcome.TOO_FEW_INLIERS:
+            raw = track_correspondences(model, image_id, self.raw_graph)
+            if len(raw[0]):
+                outcome = register_image(model, image_id, *_joined(descriptor, verified, raw),
+                                         self.graph, options)
+        return outcome is Outcome.REGISTERED
 
     def _after_registration(self, image_id: int) -> None:
         options = self.options
@@ -301,6 +307,12 @@ class IncrementalMapper:
                                        refine_intrinsics)
         self.timer.counts["bundle adjustment solves"] += 1
         self.timer.counts["bundle adjustment iterations"] += iterations
+
+
+def _joined(*correspondences: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """(keypoints, point ids) of several correspondence sets, one after the other."""
+    return (np.concatenate([kps for kps, _ in correspondences]),
+            np.concatenate([point_ids for _, point_ids in correspondences]))
 
 
 def reconstruct(db: DatabaseContents, options: MapperOptions,
