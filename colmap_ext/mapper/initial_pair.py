@@ -59,21 +59,29 @@ def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
 def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
                         excluded: set[Pair]) -> TwoViewReconstruction | None:
     """The requested pair, or the best-conditioned among the pairs with most matches:
-    most well-triangulated points among those with a wide enough median angle."""
+    most well-triangulated points among those whose median triangulation angle reaches
+    initialization.min_tri_angle_deg. As COLMAP relaxes its initialization, the angle
+    halves while no pair reaches it, down to triangulation.min_tri_angle_deg."""
     if options.initialization.image_id1 >= 0 or options.initialization.image_id2 >= 0:
         return _requested_pair(model, matches, options)
     candidates = sorted((pair for pair, m in matches.items()
                          if len(m) >= options.initialization.min_num_inliers and pair not in excluded),
                         key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
-    best = None
+    two_views = []
     for pair in candidates:
         two_view = reconstruct_pair(model, pair, matches[pair], options)
-        if two_view is None or two_view.median_angle_deg < options.initialization.min_tri_angle_deg:
+        if two_view is None:
             excluded.add(pair)
-            continue
-        if best is None or len(two_view.matches) > len(best.matches):
-            best = two_view
-    return best
+        else:
+            two_views.append(two_view)
+    min_angle = options.initialization.min_tri_angle_deg
+    while True:
+        wide = [two_view for two_view in two_views if two_view.median_angle_deg >= min_angle]
+        if wide:
+            return max(wide, key=lambda two_view: len(two_view.matches))
+        if min_angle / 2 < options.triangulation.min_tri_angle_deg:
+            return None
+        min_angle /= 2
 
 
 def check_requested_pair(image_ids: Iterable[int], options: MapperOptions) -> None:

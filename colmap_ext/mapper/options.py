@@ -55,8 +55,9 @@ class InitializationOptions:
     image_id2: int = -1
     # Inliers of the pair's relative pose that triangulate.
     min_num_inliers: int = 30
-    # Median triangulation angle (deg) the pair needs: it fixes the depth.
-    min_tri_angle_deg: float = 4.0
+    # Median triangulation angle (deg) the pair needs: it fixes the depth. Halved while
+    # no pair reaches it (down to triangulation.min_tri_angle_deg), as COLMAP does.
+    min_tri_angle_deg: float = 8.0
 
     def check(self) -> None:
         _require(self.image_id1 >= -1, self, "image_id1", ">= -1")
