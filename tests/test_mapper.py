@@ -435,8 +435,9 @@ def test_dino_sparse_ring(real_databases, tmp_path):
         assert evaluate(reconstructions[1], truth)["R_err_max_deg"] < 2.2
         sizes.append([r.num_reg_images() for r in reconstructions.values()])
     # Measured: [6, 6] on every seed but 2, whose second arc starts from images 1 and 2
-    # (those with most points among pairs 8 deg apart or more) and keeps 16 alone: P3P
-    # poses images 3 and 15 where the epipolar check turns them down (support 0.80-0.84).
+    # (those with most points among pairs 8 deg apart or more) and ends with 1, 2 and 16:
+    # P3P poses images 3 and 15 off the verified matches' epipolar lines (support
+    # 0.80-0.84), and the check turns them down.
     assert sizes.count([6, 6]) >= 9 and all(size[0] == 6 for size in sizes)
 
 

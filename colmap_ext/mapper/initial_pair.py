@@ -75,13 +75,14 @@ def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray], options: 
         else:
             two_views.append(two_view)
     min_angle = options.initialization.min_tri_angle_deg
-    while True:
+    while two_views:
         wide = [two_view for two_view in two_views if two_view.median_angle_deg >= min_angle]
         if wide:
             return max(wide, key=lambda two_view: len(two_view.matches))
         if min_angle / 2 < options.triangulation.min_tri_angle_deg:
-            return None
+            break
         min_angle /= 2
+    return None
 
 
 def check_requested_pair(image_ids: Iterable[int], options: MapperOptions) -> None:

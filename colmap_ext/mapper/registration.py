@@ -1,5 +1,6 @@
 """Registration of the next image (paper, steps 4a-4b): 2D-3D correspondences with
-the model's points, then P3P RANSAC (OpenGV) refined on the inliers."""
+the model's points, then P3P RANSAC (OpenGV) refined on the inliers; the pose must keep
+the image's verified matches on their epipolar lines."""
 
 from __future__ import annotations
 
@@ -12,6 +13,7 @@ import solvers
 from colmap_ext.mapper.guided_matching import sampson_errors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
+
 
 class Outcome(enum.Enum):
     """What register_image did."""
