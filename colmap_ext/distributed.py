@@ -264,7 +264,7 @@ class ExtractedChunk:
 
 
 def extract_chunk(source: ImageSource, names: list[str], camera_model: str, camera_params: str,
-                  min_num_keypoints: int) -> ExtractedChunk:
+                  min_num_keypoints: int, domain_size_pooling: bool) -> ExtractedChunk:
     """The task: SIFT of `names` with the adaptive threshold rule (features.py), exactly
     as the single-machine extractor computes them, returned as arrays."""
     default = single_features.DEFAULT_PEAK_THRESHOLD
@@ -273,13 +273,14 @@ def extract_chunk(source: ImageSource, names: list[str], camera_model: str, came
                                              camera_params=camera_params)
         if mask_root is not None:
             reader.mask_path = Path(mask_root)
-        found = single_features.extract_to_memory(image_root, names, reader, default)
+        found = single_features.extract_to_memory(image_root, names, reader, default,
+                                                   domain_size_pooling)
         initial = {name: len(found[name][0]) for name in names}
         thresholds = dict.fromkeys(names, default)
         low = [name for name in names if initial[name] < min_num_keypoints]
         if low:
             found.update(single_features.reextract(image_root, low, reader, min_num_keypoints,
-                                                   thresholds, progress=False))
+                                                   thresholds, False, domain_size_pooling))
     features = {name: (np.asarray(keypoints, np.float32), np.asarray(descriptors.data, np.uint8))
                 for name, (keypoints, descriptors) in found.items()}
     return ExtractedChunk(features, initial, thresholds)
@@ -291,7 +292,7 @@ def extract_features(cluster: Cluster, database_path: str | os.PathLike,
                      mask_path: str | os.PathLike | None = None,
                      min_num_keypoints: int | None = None,
                      image_names: Sequence[str] | None = None, by_path: bool | None = None,
-                     progress: bool = True) -> FeatureSummary:
+                     domain_size_pooling: bool = False, progress: bool = True) -> FeatureSummary:
     """features.extract_features on the cluster: the same database rows, the SIFT of
     each chunk of images computed by a task and written here. `by_path`: whether the
     tasks read the images by path (None: when every node sees them, shared_file_system)."""
@@ -324,7 +325,8 @@ def extract_features(cluster: Cluster, database_path: str | os.PathLike,
     try:
         ids = {image.name: image.image_id for image in db.read_all_images()}
         results = cluster.run(extract_chunk, (
-            (source, list(group), camera_model, params_text, min_num_keypoints)
+            (source, list(group), camera_model, params_text, min_num_keypoints,
+             domain_size_pooling)
             for source, group in zip(sources, groups)), len(groups),
             desc="extract (Ray)", progress=progress)
         for chunk in results:
@@ -526,7 +528,8 @@ def extract_and_match(cluster: Cluster, database_path: Path, image_path: str | o
                       camera_params: Sequence[float], camera_mode: str,
                       mask_path: str | os.PathLike | None, min_num_keypoints: int,
                       image_names: Sequence[str], matcher: str, seed: int | None,
-                      exact_matching: bool) -> tuple[FeatureSummary, MatchingSummary, dict]:
+                      exact_matching: bool, domain_size_pooling: bool = False
+                      ) -> tuple[FeatureSummary, MatchingSummary, dict]:
     """Features and matching on the cluster into a staging database that replaces
     `database_path` once both are done; records the stages' seconds in `times` and
     returns both summaries and what the cluster was (nodes, CPUs, how images went)."""
@@ -536,7 +539,8 @@ def extract_and_match(cluster: Cluster, database_path: Path, image_path: str | o
         features = extract_features(cluster, staging, image_path, camera_model=camera_model,
                                     camera_params=camera_params, camera_mode=camera_mode,
                                     mask_path=mask_path, min_num_keypoints=min_num_keypoints,
-                                    image_names=image_names, by_path=by_path)
+                                    image_names=image_names, by_path=by_path,
+                                    domain_size_pooling=domain_size_pooling)
         times["features"] = time.perf_counter() - start
         matching = match_features(cluster, staging, matcher=matcher, seed=seed,
                                   exact=exact_matching)

@@ -214,8 +214,10 @@ def extract_features(database_path: str | os.PathLike, image_path: str | os.Path
                      camera_mode: str = "single", mask_path: str | os.PathLike | None = None,
                      min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS,
                      image_names: Sequence[str] | None = None,
+                     domain_size_pooling: bool = False,
                      progress: bool = True) -> FeatureSummary:
-    """Extract SIFT features of every image into a new database, with the adaptive rule."""
+    """Extract SIFT features of every image into a new database, with the adaptive rule;
+    `domain_size_pooling`: COLMAP's DSP-SIFT descriptors."""
     start = time.perf_counter()
     params = check_camera(camera_model, camera_params)
     if isinstance(min_num_keypoints, bool) or not isinstance(min_num_keypoints, int) \
@@ -238,23 +240,27 @@ def extract_features(database_path: str | os.PathLike, image_path: str | os.Path
                                image_names=names, options=reader)
         pycolmap.extract_features(database_path, image_path, image_names=names,
                                   camera_mode=CAMERA_MODES[camera_mode], reader_options=reader,
-                                  extraction_options=extraction_options(None),
+                                  extraction_options=extraction_options(None,
+                                                                        domain_size_pooling),
                                   device=pycolmap.Device.cpu)
     initial = keypoint_counts(database_path, names)
     thresholds = dict.fromkeys(names, DEFAULT_PEAK_THRESHOLD)
     final = dict(initial)
     low = [name for name in names if initial[name] < min_num_keypoints]
     if low:
-        replacements = reextract(image_path, low, reader, min_num_keypoints, thresholds, progress)
+        replacements = reextract(image_path, low, reader, min_num_keypoints, thresholds,
+                                 progress, domain_size_pooling)
         replace_features(database_path, replacements)
         final.update({name: len(keypoints) for name, (keypoints, _) in replacements.items()})
     return FeatureSummary(initial, final, thresholds, time.perf_counter() - start)
 
 
-def extraction_options(peak_threshold: float | None) -> pycolmap.FeatureExtractionOptions:
+def extraction_options(peak_threshold: float | None,
+                       domain_size_pooling: bool = False) -> pycolmap.FeatureExtractionOptions:
     """CPU SIFT on all cores (said explicitly, which also spares COLMAP's memory warning)."""
     options = pycolmap.FeatureExtractionOptions()
     options.num_threads = os.cpu_count() or 1
+    options.sift.domain_size_pooling = domain_size_pooling
     if peak_threshold is not None:
         options.sift.peak_threshold = peak_threshold
     return options
@@ -297,7 +303,8 @@ def keypoint_counts(database_path: str | os.PathLike, names: Sequence[str]) -> d
 
 def reextract(image_path: str | os.PathLike, names: list[str],
               reader: pycolmap.ImageReaderOptions, min_num_keypoints: int,
-              thresholds: dict[str, float], progress: bool) -> dict[str, Features]:
+              thresholds: dict[str, float], progress: bool,
+              domain_size_pooling: bool = False) -> dict[str, Features]:
     """Halve the peak threshold of the images still short of keypoints until each has
     enough or the floor is reached; updates `thresholds`, returns the last features."""
     features: dict[str, Features] = {}
@@ -307,7 +314,8 @@ def reextract(image_path: str | os.PathLike, names: list[str],
               disable=not progress) as bar:
         while pending and threshold > MIN_PEAK_THRESHOLD:
             threshold = max(threshold / 2, MIN_PEAK_THRESHOLD)
-            features.update(extract_to_memory(image_path, pending, reader, threshold))
+            features.update(extract_to_memory(image_path, pending, reader, threshold,
+                                              domain_size_pooling))
             thresholds.update(dict.fromkeys(pending, threshold))
             still_low = [name for name in pending if len(features[name][0]) < min_num_keypoints]
             bar.update(len(pending) - len(still_low))
@@ -317,8 +325,8 @@ def reextract(image_path: str | os.PathLike, names: list[str],
 
 
 def extract_to_memory(image_path: str | os.PathLike, names: list[str],
-                      reader: pycolmap.ImageReaderOptions, peak_threshold: float
-                      ) -> dict[str, Features]:
+                      reader: pycolmap.ImageReaderOptions, peak_threshold: float,
+                      domain_size_pooling: bool = False) -> dict[str, Features]:
     """Keypoints and descriptors of `names` from pycolmap's extractor on a scratch
     database (one camera per image there: only the features are kept)."""
     with tempfile.TemporaryDirectory(prefix="colmap-ext-sift-") as scratch:
@@ -327,7 +335,8 @@ def extract_to_memory(image_path: str | os.PathLike, names: list[str],
             pycolmap.extract_features(database_path, image_path, image_names=names,
                                       camera_mode=pycolmap.CameraMode.PER_IMAGE,
                                       reader_options=reader,
-                                      extraction_options=extraction_options(peak_threshold),
+                                      extraction_options=extraction_options(
+                                          peak_threshold, domain_size_pooling),
                                       device=pycolmap.Device.cpu)
         db = pycolmap.Database.open(database_path)
         try:

@@ -27,6 +27,7 @@ from colmap_ext.features import (
 )
 from colmap_ext.mapper import MapperOptions
 from colmap_ext.mapper import run as run_mapper
+from colmap_ext.mapper.flags import boolean
 from colmap_ext.masks import METHODS, make_masks
 from colmap_ext.matching import MATCHERS, match_features
 from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json
@@ -51,6 +52,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--min_num_keypoints", type=int, default=DEFAULT_MIN_NUM_KEYPOINTS,
                         help="images with fewer keypoints are extracted again with a lower "
                              "SIFT peak threshold")
+    parser.add_argument("--SiftExtraction.domain_size_pooling", dest="domain_size_pooling",
+                        type=boolean, default=False, metavar="{0,1}",
+                        help="COLMAP's DSP-SIFT descriptors: on textured photographs lower "
+                             "rotation errors, at twice the extraction time; on low-texture "
+                             "turntables worse (BENCHMARKS.md)")
     parser.add_argument("--matcher", choices=MATCHERS, default="auto",
                         help="auto: exhaustive up to 100 images, sequential (with loop "
                              "closure) beyond")
@@ -75,7 +81,8 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
          camera_mode: str = "single", mask_path: str | None = None, segment: str | None = None,
          min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS, matcher: str = "auto",
          exact_matching: bool = False, seed: int | None = None, overwrite: bool = False,
-         output_type: str = "BIN", ray_address: str | None = None) -> dict:
+         output_type: str = "BIN", ray_address: str | None = None,
+         domain_size_pooling: bool = False) -> dict:
     """Run masks (optional), features, matching and the mapper; returns the summary.
     With `ray_address`, features and matching run as tasks on that Ray cluster
     (distributed.py), which is reached before anything is written."""
@@ -88,15 +95,15 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
                                  overwrite, output_type)
     with distributed.optional_cluster(ray_address) as cluster:
         return run_stages(image_path, workspace, camera_model, camera_mode, mask_path, segment,
-                          min_num_keypoints, matcher, exact_matching, seed, overwrite,
-                          output_type, names, params, cluster, start)
+                          min_num_keypoints, domain_size_pooling, matcher, exact_matching,
+                          seed, overwrite, output_type, names, params, cluster, start)
 
 
 def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode: str,
                mask_path: str | None, segment: str | None, min_num_keypoints: int,
-               matcher: str, exact_matching: bool, seed: int | None, overwrite: bool,
-               output_type: str, names: list[str], params: list[float],
-               cluster: distributed.Cluster | None, start: float) -> dict:
+               domain_size_pooling: bool, matcher: str, exact_matching: bool,
+               seed: int | None, overwrite: bool, output_type: str, names: list[str],
+               params: list[float], cluster: distributed.Cluster | None, start: float) -> dict:
     """The stages of `main` once the inputs are checked; `cluster`: where features and
     matching run (None: here)."""
     seed = secrets.randbits(31) if seed is None else seed
@@ -107,7 +114,7 @@ def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode:
         "image_path": str(image_path), "camera_model": camera_model,
         "camera_params": params, "camera_mode": camera_mode,
         "mask_path": mask_path, "segment": segment, "min_num_keypoints": min_num_keypoints,
-        "matcher": matcher, "exact_matching": exact_matching, "seed": seed,
+        "domain_size_pooling": domain_size_pooling, "matcher": matcher, "exact_matching": exact_matching, "seed": seed,
         "num_images": len(names)}}
 
     if segment is not None:
@@ -120,7 +127,8 @@ def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode:
             features = extract_features(database_path, image_path, camera_model=camera_model,
                                         camera_params=params, camera_mode=camera_mode,
                                         mask_path=mask_path, min_num_keypoints=min_num_keypoints,
-                                        image_names=names)
+                                        image_names=names,
+                                        domain_size_pooling=domain_size_pooling)
         matching = match_features(database_path, matcher=matcher, seed=seed,
                                   exact=exact_matching)
     else:
@@ -128,7 +136,7 @@ def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode:
             cluster, database_path, image_path, times, camera_model=camera_model,
             camera_params=params, camera_mode=camera_mode, mask_path=mask_path,
             min_num_keypoints=min_num_keypoints, image_names=names, matcher=matcher, seed=seed,
-            exact_matching=exact_matching)
+            exact_matching=exact_matching, domain_size_pooling=domain_size_pooling)
     summary["features"] = features.to_dict()
     times["matching"] = matching.matching_seconds
     times["verification"] = matching.verification_seconds

@@ -859,6 +859,11 @@ def _(env):
     return _reconstruct(env, params="600,600,4")
 
 
+@case("reconstruct_pooling_not_a_boolean", "invalid boolean value", code=2, command="reconstruct")
+def _(env):
+    return _reconstruct(env, "--SiftExtraction.domain_size_pooling", "maybe")
+
+
 @case("reconstruct_zero_byte_image", "image file is empty", command="reconstruct")
 def _(env):
     args = _reconstruct(env)

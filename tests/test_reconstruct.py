@@ -143,6 +143,29 @@ def test_mapper_maps_the_ring_database_with_any_seed(ring_run, tmp_path: Path) -
                    MapperOptions(seed=seed), progress=False)
 
 
+def test_domain_size_pooling_reaches_the_extractor(ring_run, tmp_path: Path) -> None:
+    """--SiftExtraction.domain_size_pooling 1: COLMAP's DSP-SIFT (its covariant
+    extractor: other keypoints and descriptors on every image), recorded in the summary."""
+    _, images, workspace, _ = ring_run
+    summary = main(images, tmp_path / "ws", "OPENCV", PARAMS, seed=0, domain_size_pooling=True)
+    assert summary["inputs"]["domain_size_pooling"] is True
+    features = {}
+    for name, folder in (("plain", workspace), ("pooled", tmp_path / "ws")):
+        database = pycolmap.Database.open(folder / "database.db")
+        try:
+            features[name] = {image.name: (database.read_keypoints(image.image_id),
+                                           database.read_descriptors(image.image_id).data)
+                              for image in database.read_all_images()}
+        finally:
+            database.close()
+    assert features["plain"].keys() == features["pooled"].keys()
+    for name, (keypoints, descriptors) in features["plain"].items():
+        pooled_keypoints, pooled_descriptors = features["pooled"][name]
+        assert len(pooled_keypoints) == len(pooled_descriptors) > 0, name
+        assert not (np.array_equal(keypoints, pooled_keypoints)
+                    or np.array_equal(descriptors, pooled_descriptors)), name
+
+
 @pytest.fixture(scope="module")
 def object_ring(tmp_path_factory):
     """The ring scene's objects alone (no room: a uniform grey background, like a
