@@ -280,7 +280,8 @@ def extract_chunk(source: ImageSource, names: list[str], camera_model: str, came
         low = [name for name in names if initial[name] < min_num_keypoints]
         if low:
             found.update(single_features.reextract(image_root, low, reader, min_num_keypoints,
-                                                   thresholds, False, domain_size_pooling))
+                                                   thresholds, progress=False,
+                                                   domain_size_pooling=domain_size_pooling))
     features = {name: (np.asarray(keypoints, np.float32), np.asarray(descriptors.data, np.uint8))
                 for name, (keypoints, descriptors) in found.items()}
     return ExtractedChunk(features, initial, thresholds)

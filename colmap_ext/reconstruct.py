@@ -114,8 +114,8 @@ def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode:
         "image_path": str(image_path), "camera_model": camera_model,
         "camera_params": params, "camera_mode": camera_mode,
         "mask_path": mask_path, "segment": segment, "min_num_keypoints": min_num_keypoints,
-        "domain_size_pooling": domain_size_pooling, "matcher": matcher, "exact_matching": exact_matching, "seed": seed,
-        "num_images": len(names)}}
+        "domain_size_pooling": domain_size_pooling, "matcher": matcher,
+        "exact_matching": exact_matching, "seed": seed, "num_images": len(names)}}
 
     if segment is not None:
         mask_path = str(workspace / "masks")

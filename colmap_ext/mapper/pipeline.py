@@ -258,7 +258,8 @@ class IncrementalMapper:
         neighbours = self._neighbours(image_id, options.guided_matching.num_images)
         descriptor = descriptor_correspondences(model, image_id, neighbours, options)
         verified = track_correspondences(model, image_id, self.graph)
-        outcome = register_image(model, image_id, *_joined(descriptor, verified), self.graph, options)
+        outcome = register_image(model, image_id, *_joined(descriptor, verified), self.graph,
+                                 options)
         if outcome is Outcome.INCONSISTENT:
             outcome = register_image(model, image_id, *verified, self.graph, options)
         elif outcome is Outcome.TOO_FEW_INLIERS:
