@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from colmap_ext.errors import UserError
 from colmap_ext.evaluate import evaluate, match_images
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth, read_model
 
@@ -76,7 +77,8 @@ def main(ground_truth: str, models: dict[str, str], per_image: bool = False) -> 
 
 def _errors(report: dict) -> str:
     return (f"{report['num_registered']} | {report['R_err_max_deg']:.4f} / "
-            f"{report['R_err_median_deg']:.4f} | {report['C_err_max']:.5f} / {report['C_err_median']:.5f}")
+            f"{report['R_err_median_deg']:.4f} | {report['C_err_max']:.5f} / "
+            f"{report['C_err_median']:.5f}")
 
 
 def parse_model(text: str) -> tuple[str, str]:
@@ -88,9 +90,16 @@ def parse_model(text: str) -> tuple[str, str]:
 
 if __name__ == "__main__":
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--ground_truth", required=True,
-                        help="Middlebury _par.txt (or its folder), Strecha gt_cameras/, or a COLMAP model")
-    parser.add_argument("models", nargs="+", type=parse_model, help="NAME=MODEL_FOLDER, two or more")
-    parser.add_argument("--per_image", action="store_true", help="also each image's R_err in every model")
+    parser.add_argument("--ground_truth", required=True, help="Middlebury _par.txt (or its "
+                        "folder), Strecha gt_cameras/, or a COLMAP model")
+    parser.add_argument("models", nargs="+", type=parse_model,
+                        help="NAME=MODEL_FOLDER, two or more")
+    parser.add_argument("--per_image", action="store_true",
+                        help="also each image's R_err in every model")
     args = parser.parse_args()
-    main(args.ground_truth, dict(args.models), args.per_image)
+    if len(dict(args.models)) < 2:
+        parser.error("give two or more models with distinct names")
+    try:
+        main(args.ground_truth, dict(args.models), args.per_image)
+    except UserError as exc:
+        parser.error(str(exc))

@@ -210,55 +210,51 @@ def test_segmented_object_ring_end_to_end(object_ring, tmp_path: Path, method: s
     assert report["C_err_max"] < 0.12
 
 
+def reconstruct_real_set(images: Path, truth: GroundTruth, workspace: Path) -> tuple[dict, dict]:
+    """`reconstruct` on a real set with its ground-truth intrinsics (seed 0): the run's
+    summary and the evaluation of its first model."""
+    camera = next(iter(truth.cameras.values()))
+    params = ",".join(repr(float(p)) for p in camera.params)
+    summary = main(images, workspace, camera.model.name, params, seed=0)
+    report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
+    return summary, report
+
+
 def test_temple_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
     """Issue 4's real-data target: templeSparseRing from its images and the calibrated
     intrinsics; issue 15's bound, R_err max at most 0.35 deg on every seed. Measured
     R_err max 0.213 deg (seed 0; 0.200-0.232 over seeds 0-9), C_err max 0.0092."""
     folder = real_data / "templeSparseRing"
-    truth = read_ground_truth(folder)
-    camera = next(iter(truth.cameras.values()))
-    params = ",".join(repr(float(p)) for p in camera.params)
-    summary = main(folder, tmp_path / "ws", camera.model.name, params, seed=0)
-    report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
+    _, report = reconstruct_real_set(folder, read_ground_truth(folder), tmp_path / "ws")
     assert report["num_registered"] == 16
     assert report["R_err_max_deg"] < 0.35
     assert report["C_err_max"] < 0.02
 
 
-def test_strecha_entry_end_to_end(tmp_path: Path, real_data: Path) -> None:
-    """Issue 15's textured photographs: strecha_entry-P10 (ten 3072x2048 photographs, LIDAR
-    ground truth) from its images, and the paper's figures for Strecha's sets: R_err at most
-    0.1 deg, C_err below 0.015. Measured (seed 0): R_err max 0.054 / median 0.025 deg, C_err
-    max 0.0105 / median 0.0052; COLMAP's mappers on its own features 0.054 / 0.024-0.025."""
-    folder = real_data / "strecha_entry-P10"
-    truth = read_ground_truth(folder / "gt_cameras")
-    camera = next(iter(truth.cameras.values()))
-    params = ",".join(repr(float(p)) for p in camera.params)
-    summary = main(folder / "images", tmp_path / "ws", camera.model.name, params, seed=0)
+@pytest.mark.parametrize("name, truth_path, num_images, max_R_err, median_R_err, max_C_err", [
+    # Ten 3072x2048 photographs, LIDAR ground truth; within the paper's figures for Strecha's
+    # sets (R_err at most 0.1 deg, C_err below 0.015). Measured (seed 0): R_err max 0.054 /
+    # median 0.025 deg, C_err max 0.0105; COLMAP's mappers on their own features 0.054 /
+    # 0.024-0.025.
+    ("strecha_entry-P10", "gt_cameras", 10, 0.07, 0.035, 0.015),
+    # 49 photographs at 1600x1200, robot-arm ground truth. Measured (seed 0): R_err max
+    # 0.161 / median 0.065 deg, C_err max 0.0132; COLMAP's mappers 0.148-0.151 / 0.061-0.063.
+    ("dtu_scan24", "dtu_scan24_par.txt", 49, 0.2, 0.08, 0.016),
+])
+def test_textured_photographs_end_to_end(tmp_path: Path, real_data: Path, name: str,
+                                         truth_path: str, num_images: int, max_R_err: float,
+                                         median_R_err: float, max_C_err: float) -> None:
+    """Issue 15's textured photographs from their images: one model of every image, and
+    the errors of seed 0 (BENCHMARKS.md: there every model, ours and COLMAP's, shares one
+    error against the ground truth)."""
+    folder = real_data / name
+    truth = read_ground_truth(folder / truth_path)
+    summary, report = reconstruct_real_set(folder / "images", truth, tmp_path / "ws")
     assert len(summary["models"]) == 1
-    report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
-    assert report["num_registered"] == 10
-    assert report["R_err_max_deg"] < 0.07
-    assert report["R_err_median_deg"] < 0.035
-    assert report["C_err_max"] < 0.015
-
-
-def test_dtu_scan24_end_to_end(tmp_path: Path, real_data: Path) -> None:
-    """Issue 15's larger textured set: dtu_scan24 (49 photographs at 1600x1200, robot-arm
-    ground truth) from its images. Measured (seed 0): R_err max 0.161 / median 0.065 deg,
-    C_err max 0.0132; COLMAP's mappers on their own features 0.148-0.151 / 0.061-0.063
-    (BENCHMARKS.md: every model shares one error against this ground truth)."""
-    folder = real_data / "dtu_scan24"
-    truth = read_ground_truth(folder)
-    camera = next(iter(truth.cameras.values()))
-    params = ",".join(repr(float(p)) for p in camera.params)
-    summary = main(folder / "images", tmp_path / "ws", camera.model.name, params, seed=0)
-    assert len(summary["models"]) == 1
-    report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
-    assert report["num_registered"] == 49
-    assert report["R_err_max_deg"] < 0.2
-    assert report["R_err_median_deg"] < 0.08
-    assert report["C_err_max"] < 0.016
+    assert report["num_registered"] == num_images
+    assert report["R_err_max_deg"] < max_R_err
+    assert report["R_err_median_deg"] < median_R_err
+    assert report["C_err_max"] < max_C_err
 
 
 def test_dino_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
@@ -270,11 +266,8 @@ def test_dino_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
     (0.274 for seed 0), C_err max 0.0104 for seed 0."""
     folder = real_data / "dinoSparseRing"
     truth = read_ground_truth(folder)
-    camera = next(iter(truth.cameras.values()))
-    params = ",".join(repr(float(p)) for p in camera.params)
-    summary = main(folder, tmp_path / "ws", camera.model.name, params, seed=0)
+    summary, report = reconstruct_real_set(folder, truth, tmp_path / "ws")
     assert len(summary["models"]) == 1
-    report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
     assert report["num_registered"] == 16
     assert report["R_err_max_deg"] < 0.45
     assert report["C_err_max"] < 0.025
