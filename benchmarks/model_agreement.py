@@ -29,7 +29,7 @@ from colmap_ext.ground_truth import GroundTruth, read_ground_truth, read_model
 
 
 def rotation_vector_deg(R: np.ndarray) -> np.ndarray:
-    """The axis x angle (deg) of a rotation matrix (angles below 90 deg)."""
+    """The axis x angle (deg) of a rotation matrix (angles well below 180 deg)."""
     angle = np.arccos(np.clip((np.trace(R) - 1) / 2, -1.0, 1.0))
     axis = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
     norm = np.linalg.norm(axis)
