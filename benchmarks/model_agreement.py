@@ -24,7 +24,7 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.errors import UserError
-from colmap_ext.evaluate import evaluate, match_images
+from colmap_ext.evaluate import evaluate, match_images, relative_to_first
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth, read_model
 
 
@@ -39,12 +39,11 @@ def rotation_vector_deg(R: np.ndarray) -> np.ndarray:
 def error_vectors(model: pycolmap.Reconstruction, truth: GroundTruth,
                   names: list[str]) -> np.ndarray:
     """(n, 3) rotation error of each named image relative to the first, as R_err measures it
-    but keeping its axis: rotvec(R_est,rel R_gt,rel^T)."""
+    (evaluate.pose_errors) but keeping its axis."""
     matches = match_images(model, names)
-    R_gt = [truth.poses[name].rotation.matrix() for name in names]
-    R_est = [matches[name].cam_from_world().rotation.matrix() for name in names]
-    return np.array([rotation_vector_deg((R_est[k] @ R_est[0].T) @ (R_gt[k] @ R_gt[0].T).T)
-                     for k in range(len(names))])
+    R_gt, _ = relative_to_first([truth.poses[name] for name in names])
+    R_est, _ = relative_to_first([matches[name].cam_from_world() for name in names])
+    return np.array([rotation_vector_deg(est @ gt.T) for est, gt in zip(R_est, R_gt)])
 
 
 def main(ground_truth: str, models: dict[str, str], per_image: bool = False) -> None:

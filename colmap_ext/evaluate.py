@@ -138,8 +138,8 @@ def match_images(reconstruction: pycolmap.Reconstruction, names: list[str]) -> d
 
 def pose_errors(gt_poses: list[pycolmap.Rigid3d], est_poses: list[pycolmap.Rigid3d]) -> dict[str, np.ndarray]:
     """Per-image R_err, T_err (deg), C_err and C_err_aligned of matched cam_from_world poses."""
-    R_gt, t_gt = _relative_to_first(gt_poses)
-    R_est, t_est = _relative_to_first(est_poses)
+    R_gt, t_gt = relative_to_first(gt_poses)
+    R_est, t_est = relative_to_first(est_poses)
     C_gt, C_est = _centres(R_gt, t_gt), _centres(R_est, t_est)
     unit = np.linalg.norm(C_gt[1] - C_gt[0])
     if unit <= _SAME_CENTRE * np.sqrt(_spread(C_gt) / len(C_gt)):
@@ -196,7 +196,7 @@ def aligned_to_ground_truth(reconstruction: pycolmap.Reconstruction,
     return cameras, gt_from_model * np.array(xyz).reshape(-1, 3)
 
 
-def _relative_to_first(poses: list[pycolmap.Rigid3d]) -> tuple[np.ndarray, np.ndarray]:
+def relative_to_first(poses: list[pycolmap.Rigid3d]) -> tuple[np.ndarray, np.ndarray]:
     """Rotations (n,3,3) and translations (n,3) of cam_i_from_cam_1 = cam_i_from_world * world_from_cam_1."""
     R = np.array([pose.rotation.matrix() for pose in poses])
     t = np.array([pose.translation for pose in poses])
