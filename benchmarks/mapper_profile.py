@@ -80,7 +80,7 @@ def section(rows: list[list[str]], notes: list[str], seed: int, elapsed_s: float
         "matching to model points, P3P), triangulation (guided matching, new points), bundle "
         "adjustment (Ceres through pycolmap, with building its problem), filtering; other: "
         "two-view geometry, initial pair, merging, export.",
-        "- loss: the robust loss of every bundle adjustment (`MapperOptions.ba_loss`); "
+        "- loss: the robust loss of every bundle adjustment (`MapperOptions.bundle_adjustment.loss`); "
         "cauchy is the default.",
         "", markdown_table(HEADINGS, rows), "",
         *[f"- {note}" for note in notes],

@@ -270,7 +270,7 @@ def test_colmap_client_continues_a_model(colmap_database, cli_run, real_data, tm
     54 and 122 deg between 2 and 3 and 5 and 6). Measured on 8 COLMAP 3.8 databases
     (COLMAP matches differently on each run): 16/16 on each, R_err max 0.183-0.190 deg.
     With images 1 and 2 added to the six, one of them left images 3, 4 and 14 out
-    (BENCHMARKS.md, "A finding on continued models")."""
+    (docs/experiments/continued-models.md)."""
     database, images = colmap_database
     names = sorted(p.name for p in images.glob("*.png"))
     half_ring = [names[k - 1] for k in (6, 7, 8, 9, 10, 11)]
