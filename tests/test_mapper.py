@@ -402,7 +402,7 @@ def test_temple_final_stage_over_seeds(real_databases, tmp_path):
     0 / 1 / 2: 0.208 / 0.234 / 0.208 deg; without the retriangulation 0.274 / 0.292 /
     0.273; without both 0.308 / 0.333 / 0.307. Without the filter alone 0.236 / 0.238 /
     0.233: on these features the retriangulation does nearly all of it (on our own, see
-    BENCHMARKS.md, the filter still takes the worst seed from 0.286 to 0.226)."""
+    docs/experiments/retriangulation.md, the filter still takes the worst seed from 0.286 to 0.226)."""
     database, images, truth = real_databases["templeSparseRing"]
     errors = []
     for seed in (0, 1, 2):
