@@ -10,7 +10,7 @@ import pycolmap
 
 from solvers import _opengv
 from solvers.checks import (as_camera_index, as_points3D, as_pose_rows, as_rays, check_choice,
-                            check_positive, check_same_length)
+                            check_positive, check_rig_has_baseline, check_same_length)
 
 RELATIVE_METHODS = ("stewenius", "nister")
 ABSOLUTE_METHODS = ("kneip", "gao")
@@ -140,6 +140,7 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
     check_choice("method", method, GENERALIZED_RELATIVE_METHODS)
     f1, f2 = as_rays(rays1, "rays1"), as_rays(rays2, "rays2")
     rig = as_pose_rows(cams_from_rig, "cams_from_rig")
+    check_rig_has_baseline(rig, "cams_from_rig")
     c1 = as_camera_index(camera_index1, "camera_index1", len(rig))
     c2 = as_camera_index(camera_index2, "camera_index2", len(rig))
     sample_size = 6 if method == "sixpt" else 17

@@ -74,3 +74,13 @@ def as_camera_index(values, name: str, num_cameras: int) -> np.ndarray:
     if array.size and (array.min() < 0 or array.max() >= num_cameras):
         raise ValueError(f"{name} out of range of the rig's {num_cameras} cameras")
     return np.ascontiguousarray(array, dtype=np.int32)
+
+
+def check_rig_has_baseline(cams_from_rig_rows: np.ndarray, name: str) -> None:
+    """A generalized relative pose needs cameras at two centres at least: the baseline
+    gives the translation its scale."""
+    matrices = cams_from_rig_rows.reshape(-1, 3, 4)
+    centres = -np.einsum("kji,kj->ki", matrices[:, :, :3], matrices[:, :, 3])  # -R^T t
+    if len(centres) == 0 or np.ptp(centres, axis=0).max() <= 1e-9 * max(1.0, np.abs(centres).max()):
+        raise ValueError(f"{name}: the rig's cameras share one centre (no baseline); "
+                         "use relative_pose for a single camera")

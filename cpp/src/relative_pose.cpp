@@ -379,7 +379,11 @@ class GeneralizedRelativePoseEstimator {
 
   size_t num_data() const { return pair_.size(); }
 
+  // Samples from a single camera pair are skipped: one pair's essential matrix leaves the
+  // translation's scale open (and OpenGV's 6-point solver takes 100x longer on them).
   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const {
+    const auto same_pair = [&](int i) { return pair_[i] == pair_[sample[0]]; };
+    if (std::all_of(sample.begin(), sample.end(), same_pair)) return;
     if constexpr (kMethod == GeneralizedRelativeMethod::kSixPoint) {
       // OpenGV's rotations map frame 2 into frame 1; each gets its translation. OpenGV
       // returns all 64 roots, complex ones by their real parts; scoring tells them apart.
