@@ -14,7 +14,7 @@ from solvers.checks import (as_camera_index, as_points3D, as_pose_rows, as_rays,
 
 RELATIVE_METHODS = ("stewenius", "nister")
 ABSOLUTE_METHODS = ("kneip", "gao")
-GENERALIZED_RELATIVE_METHODS = ("sixpt", "seventeenpt")
+GENERALIZED_RELATIVE_METHODS = ("sixpt", "fivept_plus_one", "seventeenpt")
 
 
 class EstimationError(RuntimeError):
@@ -121,7 +121,7 @@ def absolute_pose(rays, points3D, *, max_error: float, method: str = "kneip",
 
 def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
                               cams_from_rig: list[pycolmap.Rigid3d], *, max_error: float,
-                              method: str = "sixpt", max_iterations: int = 10000,
+                              method: str = "fivept_plus_one", max_iterations: int = 10000,
                               min_iterations: int = 10, confidence: float = 0.9999,
                               min_num_inliers: int = 15,
                               seed: int | None = None) -> GeneralizedRelativePoseResult:
@@ -132,10 +132,18 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
     `rays2[i]` of camera `camera_index2[i]` in frame 2; `cams_from_rig[c]` is camera c's
     pose in the rig. The translation is metric: the rig needs cameras at different
     centres. `max_error` bounds each pair's Sampson error in normalized image units (as
-    `relative_pose`'s). `method` "sixpt" (Stewenius' 6 points; default) or "seventeenpt"
-    (Li's linear 17 points, whose larger sample needs far more iterations with outliers).
-    The pose is refined on the inliers (Sampson errors, Levenberg-Marquardt). Raises
-    EstimationError when fewer than `min_num_inliers` correspondences agree.
+    `relative_pose`'s). `method`:
+    - "fivept_plus_one" (default): the 5-point solver on five correspondences of one
+      camera pair, the scale from a sixth of another pair; needs a camera pair with five
+      correspondences and another with one (a rig moving, its cameras seeing the scene
+      again), and is the fastest by far (BENCHMARKS.md).
+    - "sixpt": Stewenius' generalized 6-point solver, for any correspondences; each
+      sample takes milliseconds.
+    - "seventeenpt": Li's linear 17 points, whose sample needs far more iterations with
+      outliers.
+    Samples of a single camera pair are skipped: they leave the scale open. The pose is
+    refined on the inliers (Sampson errors, Levenberg-Marquardt). Raises EstimationError
+    when fewer than `min_num_inliers` correspondences agree.
     """
     check_choice("method", method, GENERALIZED_RELATIVE_METHODS)
     f1, f2 = as_rays(rays1, "rays1"), as_rays(rays2, "rays2")
@@ -143,7 +151,7 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
     check_rig_has_baseline(rig, "cams_from_rig")
     c1 = as_camera_index(camera_index1, "camera_index1", len(rig))
     c2 = as_camera_index(camera_index2, "camera_index2", len(rig))
-    sample_size = 6 if method == "sixpt" else 17
+    sample_size = 17 if method == "seventeenpt" else 6
     check_same_length(f1, f2, "rays1", "rays2", minimum=sample_size)
     check_same_length(f1, c1, "rays1", "camera_index1")
     check_same_length(f2, c2, "rays2", "camera_index2")

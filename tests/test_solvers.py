@@ -30,11 +30,13 @@ ABSOLUTE_MAX_TRANSLATION_DEG = 0.75  # worst 0.243 (t's direction is unstable wh
 ABSOLUTE_MAX_CENTRE_ERROR = 0.007  # worst 0.0022, scene 4.5 away
 MIN_INLIER_AGREEMENT = 0.96  # worst 0.988 (1.2 % of the labels wrong)
 # Rigs of three cameras 1 from the rig's centre (RIG), 0.5 px noise, about 3x the worst
-# error measured over 12 scenes per outlier ratio 0, 0.2, 0.3, 0.4 (RANSAC seeds 1 to 12):
+# error measured over 12 scenes per outlier ratio 0, 0.2, 0.3, 0.4 (RANSAC seeds 1 to 12;
+# relative pose: 6-point and 5+1-point):
 RIG_ABSOLUTE_MAX_ROTATION_DEG = 0.025  # worst 0.0077
 RIG_ABSOLUTE_MAX_CENTRE_ERROR = 0.0025  # worst 0.00077, scene 4.5 away
-RIG_RELATIVE_MAX_ROTATION_DEG = 0.3  # worst 0.088
+RIG_RELATIVE_MAX_ROTATION_DEG = 0.4  # worst 0.128 (0.386 at 60 % outliers)
 RIG_RELATIVE_MAX_TRANSLATION_ERROR = 0.7  # worst 0.22 (pycolmap's 0.61), rig moving about 0.5
+RIG_OUTLIER_RATIOS = [0.0, 0.2, 0.4]
 
 
 # ---------------------------------------------------------------- synthetic scenes
@@ -814,7 +816,7 @@ def test_generalized_absolute_pose_exact_without_noise():
     assert result.inlier_mask.all()
 
 
-@pytest.mark.parametrize("outlier_ratio", OUTLIER_RATIOS)
+@pytest.mark.parametrize("outlier_ratio", RIG_OUTLIER_RATIOS)
 def test_generalized_absolute_pose_recovers_truth(outlier_ratio):
     scene = rig_one_view(seed=int(outlier_ratio * 100), outlier_ratio=outlier_ratio)
     result = generalized_absolute(scene, seed=1)
@@ -837,7 +839,7 @@ def test_generalized_absolute_pose_of_one_camera_is_absolute_pose():
     assert (rig.inlier_mask == single.inlier_mask).all()
 
 
-@pytest.mark.parametrize("method", ["sixpt", "seventeenpt"])
+@pytest.mark.parametrize("method", ["fivept_plus_one", "sixpt", "seventeenpt"])
 def test_generalized_relative_pose_exact_without_noise(method):
     scene = rig_two_view(seed=3, n=60, noise=0.0)
     result = generalized_relative(scene, method=method, seed=1)
@@ -848,6 +850,7 @@ def test_generalized_relative_pose_exact_without_noise(method):
 
 
 @pytest.mark.parametrize("method, outlier_ratio", [
+    *(("fivept_plus_one", ratio) for ratio in RIG_OUTLIER_RATIOS),
     ("sixpt", 0.0), ("sixpt", 0.2), ("sixpt", 0.4), ("seventeenpt", 0.0), ("seventeenpt", 0.1)])
 def test_generalized_relative_pose_recovers_truth(method, outlier_ratio):
     scene = rig_two_view(seed=int(outlier_ratio * 100), outlier_ratio=outlier_ratio)

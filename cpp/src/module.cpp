@@ -36,9 +36,10 @@ FivePointMethod five_point_method(const std::string& name) {
 
 GeneralizedRelativeMethod generalized_relative_method(const std::string& name) {
   if (name == "sixpt") return GeneralizedRelativeMethod::kSixPoint;
+  if (name == "fivept_plus_one") return GeneralizedRelativeMethod::kFivePlusOne;
   if (name == "seventeenpt") return GeneralizedRelativeMethod::kSeventeenPoint;
   throw std::invalid_argument("unknown generalized relative pose method '" + name +
-                              "' (sixpt, seventeenpt)");
+                              "' (sixpt, fivept_plus_one, seventeenpt)");
 }
 
 // Poses from rows of their row-major 3x4 matrices [R | t].

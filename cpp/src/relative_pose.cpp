@@ -2,7 +2,10 @@
 
 #include <Eigen/Dense>
 #include <Eigen/SVD>
+#include <algorithm>
 #include <array>
+#include <random>
+#include <type_traits>
 #include <opengv/relative_pose/NoncentralRelativeAdapter.hpp>
 #include <opengv/relative_pose/methods.hpp>
 #include <opengv/relative_pose/modules/main.hpp>
@@ -111,6 +114,23 @@ inline SampsonTerms sampson_terms(const Eigen::Matrix3d& E, const Eigen::Vector2
   s.c = x2.dot(s.Ex1.head<2>()) + s.Ex1.z();
   s.d = s.Ex1.head<2>().squaredNorm() + s.Etx2.head<2>().squaredNorm();
   return s;
+}
+
+// E = [t]x R has two rotations, Ra and Rb, and the unit translation t up to its sign.
+struct EssentialDecomposition {
+  Eigen::Matrix3d Ra, Rb;
+  Eigen::Vector3d t;
+};
+
+EssentialDecomposition decompose(const Eigen::Matrix3d& E) {
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(E, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d U = svd.matrixU();
+  Eigen::Matrix3d V = svd.matrixV();
+  if (U.determinant() < 0) U = -U;
+  if (V.determinant() < 0) V = -V;
+  Eigen::Matrix3d W;
+  W << 0, 1, 0, -1, 0, 0, 0, 0, 1;
+  return {U * W * V.transpose(), U * W.transpose() * V.transpose(), U.col(2).normalized()};
 }
 
 // Least squares over the inliers' Sampson errors (see refinement.hpp), in the rotation
@@ -360,7 +380,8 @@ template <GeneralizedRelativeMethod kMethod>
 class GeneralizedRelativePoseEstimator {
  public:
   using Model = GeneralizedRelativeModel;
-  static constexpr int kSampleSize = kMethod == GeneralizedRelativeMethod::kSixPoint ? 6 : 17;
+  static constexpr int kSampleSize =
+      kMethod == GeneralizedRelativeMethod::kSeventeenPoint ? 17 : 6;
 
   GeneralizedRelativePoseEstimator(const bearingVectors_t& rays1, const std::vector<int>& cameras1,
                                    const bearingVectors_t& rays2, const std::vector<int>& cameras2,
@@ -368,8 +389,10 @@ class GeneralizedRelativePoseEstimator {
       : rays1_(rays1), cameras1_(cameras1), rays2_(rays2), cameras2_(cameras2), rig_(rig),
         adapter_(rays1, rays2, cameras1, cameras2, rig.offsets, rig.rotations),
         x1_(normalized_coordinates(rays1)), x2_(normalized_coordinates(rays2)) {
+    members_of_pair_.resize(rig.num_cameras() * rig.num_cameras());
     for (size_t i = 0; i < rays1.size(); ++i) {
       pair_.push_back(cameras1[i] * rig.num_cameras() + cameras2[i]);
+      members_of_pair_[pair_.back()].push_back(static_cast<int>(i));
       origin1_.push_back(rig.offsets[cameras1[i]]);
       origin2_.push_back(rig.offsets[cameras2[i]]);
       direction1_.push_back(rig.rotations[cameras1[i]] * rays1[i]);
@@ -378,6 +401,33 @@ class GeneralizedRelativePoseEstimator {
   }
 
   size_t num_data() const { return pair_.size(); }
+
+  // 5+1: five pairs of one camera pair (the camera pair of a pair drawn at random) and
+  // one of another; uniform where the data has no such sample.
+  template <GeneralizedRelativeMethod M = kMethod,
+            std::enable_if_t<M == GeneralizedRelativeMethod::kFivePlusOne, int> = 0>
+  void draw_sample(std::mt19937_64& rng, std::vector<int>* sample) const {
+    const int n = static_cast<int>(num_data());
+    std::uniform_int_distribution<int> any(0, n - 1);
+    const int anchor = any(rng);
+    const std::vector<int>& same = members_of_pair_[pair_[anchor]];
+    const int num_same = static_cast<int>(same.size());
+    const auto distinct = [&](int k, const auto& draw) {  // draw() until new to the sample
+      do (*sample)[k] = draw();
+      while (std::find(sample->begin(), sample->begin() + k, (*sample)[k]) != sample->begin() + k);
+    };
+    if (num_same < 5 || num_same == n) {
+      for (int k = 0; k < kSampleSize; ++k) distinct(k, [&] { return any(rng); });
+      return;
+    }
+    std::uniform_int_distribution<int> member(0, num_same - 1);
+    (*sample)[0] = anchor;
+    for (int k = 1; k < 5; ++k) distinct(k, [&] { return same[member(rng)]; });
+    int other;
+    do other = any(rng);
+    while (pair_[other] == pair_[anchor]);
+    (*sample)[5] = other;
+  }
 
   // Samples from a single camera pair are skipped: one pair's essential matrix leaves the
   // translation's scale open (and OpenGV's 6-point solver takes 100x longer on them).
@@ -393,6 +443,8 @@ class GeneralizedRelativePoseEstimator {
         const Pose rig2_from_rig1{R, translation_given_rotation(R, sample)};
         add_model({rig2_from_rig1, pair_essentials(rig_, rig2_from_rig1)}, sample, models);
       }
+    } else if constexpr (kMethod == GeneralizedRelativeMethod::kFivePlusOne) {
+      five_plus_one(sample, models);
     } else {
       const opengv::transformation_t T = opengv::relative_pose::seventeenpt(adapter_, sample);
       if (!T.allFinite()) return;
@@ -427,6 +479,37 @@ class GeneralizedRelativePoseEstimator {
     models->push_back(model);
   }
 
+  // The 5-point solver (OpenGV's Stewenius) on the first five pairs, all of cameras
+  // (c1, c2), gives R and the direction of t of cam2_from_cam1 = (R_p, l t_p); the
+  // sixth pair, of other cameras, gives the scale l: rig2_from_rig1 = (R, a + l b) with
+  // R = R2^T R_p R1, a = R2^T (R_p t1 - t2), b = R2^T t_p, and its rays must meet.
+  void five_plus_one(const std::vector<int>& sample, std::vector<Model>* models) const {
+    const auto first_pair = [&](int i) { return pair_[i] == pair_[sample[0]]; };
+    if (!std::all_of(sample.begin(), sample.begin() + 5, first_pair) || first_pair(sample[5]))
+      return;
+    const Pose& cam1_from_rig = rig_.cams_from_rig[cameras1_[sample[0]]];
+    const Pose& cam2_from_rig = rig_.cams_from_rig[cameras2_[sample[0]]];
+    std::vector<Eigen::Matrix3d> essentials;
+    five_point_from_null_space(epipolar_null_space(rays1_, rays2_, sample.data()),
+                               FivePointMethod::kStewenius, &essentials);
+    const int j = sample[5];
+    for (const Eigen::Matrix3d& E : essentials) {
+      const EssentialDecomposition d = decompose(E);
+      for (const Eigen::Matrix3d& R_pair : {d.Ra, d.Rb}) {
+        const Eigen::Matrix3d R = cam2_from_rig.R.transpose() * R_pair * cam1_from_rig.R;
+        const Eigen::Vector3d a =
+            cam2_from_rig.R.transpose() * (R_pair * cam1_from_rig.t - cam2_from_rig.t);
+        const Eigen::Vector3d b = cam2_from_rig.R.transpose() * d.t;
+        const Eigen::Vector3d n = (R * direction1_[j]).cross(direction2_[j]);
+        const double denominator = n.dot(b);
+        if (std::abs(denominator) < 1e-12) continue;
+        const double scale = (n.dot(origin2_[j] - R * origin1_[j]) - n.dot(a)) / denominator;
+        const Pose rig2_from_rig1{R, a + scale * b};
+        add_model({rig2_from_rig1, pair_essentials(rig_, rig2_from_rig1)}, sample, models);
+      }
+    }
+  }
+
   // The least-squares t of rig2_from_rig1 = (R, t) that makes each sample's two rays
   // meet: (R d1 x d2) . t = (R d1 x d2) . (o2 - R o1) for rays o + l d in the rig frames.
   Eigen::Vector3d translation_given_rotation(const Eigen::Matrix3d& R,
@@ -449,6 +532,7 @@ class GeneralizedRelativePoseEstimator {
   const NoncentralRelativeAdapter adapter_;
   std::vector<Eigen::Vector2d> x1_, x2_;  // normalized image points; NaN if none
   std::vector<int> pair_;                 // camera pair of each correspondence (pair_essentials)
+  std::vector<std::vector<int>> members_of_pair_;  // correspondences by camera pair
   opengv::translations_t origin1_, origin2_;     // camera centres in the rig frames
   opengv::bearingVectors_t direction1_, direction2_;  // rays in the rig frames
 };
@@ -482,17 +566,8 @@ std::vector<Eigen::Matrix3d> five_point(const bearingVectors_t& rays1,
 
 Pose decompose_essential(const Eigen::Matrix3d& E, const bearingVectors_t& rays1,
                          const bearingVectors_t& rays2, const std::vector<int>& indices) {
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(E, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d U = svd.matrixU();
-  Eigen::Matrix3d V = svd.matrixV();
-  if (U.determinant() < 0) U = -U;
-  if (V.determinant() < 0) V = -V;
-  Eigen::Matrix3d W;
-  W << 0, 1, 0, -1, 0, 0, 0, 0, 1;
-  const Eigen::Matrix3d Ra = U * W * V.transpose();
-  const Eigen::Matrix3d Rb = U * W.transpose() * V.transpose();
-  const Eigen::Vector3d t = U.col(2).normalized();
-  const Pose candidates[4] = {{Ra, t}, {Ra, -t}, {Rb, t}, {Rb, -t}};
+  const EssentialDecomposition d = decompose(E);
+  const Pose candidates[4] = {{d.Ra, d.t}, {d.Ra, -d.t}, {d.Rb, d.t}, {d.Rb, -d.t}};
   Pose best;
   int best_count = -1;
   for (const Pose& candidate : candidates) {
@@ -538,11 +613,17 @@ RansacResult<Pose> estimate_generalized_relative_pose(const bearingVectors_t& ra
                                                       const Rig& rig,
                                                       GeneralizedRelativeMethod method,
                                                       const RansacOptions& options) {
-  return method == GeneralizedRelativeMethod::kSixPoint
-             ? run_generalized_relative<GeneralizedRelativeMethod::kSixPoint>(
-                   rays1, cameras1, rays2, cameras2, rig, options)
-             : run_generalized_relative<GeneralizedRelativeMethod::kSeventeenPoint>(
-                   rays1, cameras1, rays2, cameras2, rig, options);
+  switch (method) {
+    case GeneralizedRelativeMethod::kSixPoint:
+      return run_generalized_relative<GeneralizedRelativeMethod::kSixPoint>(
+          rays1, cameras1, rays2, cameras2, rig, options);
+    case GeneralizedRelativeMethod::kFivePlusOne:
+      return run_generalized_relative<GeneralizedRelativeMethod::kFivePlusOne>(
+          rays1, cameras1, rays2, cameras2, rig, options);
+    default:
+      return run_generalized_relative<GeneralizedRelativeMethod::kSeventeenPoint>(
+          rays1, cameras1, rays2, cameras2, rig, options);
+  }
 }
 
 }  // namespace colmap_ext
