@@ -375,7 +375,7 @@ struct GeneralizedRelativeModel {
   std::vector<Eigen::Matrix3d> essentials;
 };
 
-// Generalized relative pose (OpenGV's 6-point or 17-point solver) inside LO-MSAC.
+// Generalized relative pose (see GeneralizedRelativeMethod) inside LO-MSAC.
 template <GeneralizedRelativeMethod kMethod>
 class GeneralizedRelativePoseEstimator {
  public:
