@@ -354,7 +354,8 @@ def main() -> None:
           f"pycolmap {pycolmap.__version__}, OpenCV {cv2.__version__}, NumPy {np.__version__}.\n")
     print(f"Inputs: f = {FOCAL:.0f} px, {SIZE}x{SIZE} images, {NOISE_PX} px Gaussian noise, "
           f"scene depth 4 to 8, outliers uniform over the image, {args.problems} random "
-          f"problems per row (seed {args.seed}), the same problems for every method. "
+          f"problems per row of the single-camera tables (seed {args.seed}), the same problems "
+          "for every method. "
           f"Threshold {THRESHOLD_PX} px for every method; every other RANSAC setting is the "
           f"library's default: ours confidence {ours['confidence'].default}, "
           f"{ours['min_iterations'].default} to {ours['max_iterations'].default} iterations; "
