@@ -903,6 +903,19 @@ def test_generalized_relative_pose_agrees_with_pycolmap():
         <= np.linalg.norm(theirs["rig2_from_rig1"].translation - scene.pose.translation) + 0.02
 
 
+@pytest.mark.parametrize("method", ["fivept_plus_one", "sixpt"])
+def test_generalized_relative_pose_refuses_a_single_camera_pair(method):
+    """Correspondences of one camera pair leave the scale open: no pose, not a wrong one."""
+    scene = rig_two_view(seed=5, n=300)
+    one_pair = (scene.camera_index1 == 0) & (scene.camera_index2 == 1)
+    n = int(one_pair.sum())
+    assert n >= 50
+    assert_refused(lambda: solvers.generalized_relative_pose(
+        scene.x1[one_pair], scene.camera_index1[one_pair], scene.x2[one_pair],
+        scene.camera_index2[one_pair], RIG, max_error=MAX_ERROR, method=method, seed=0),
+        "generalized relative", n, 15)
+
+
 RIG_VIEW = rig_one_view(seed=8, n=20)
 RIG_PAIR = rig_two_view(seed=8, n=20)
 
