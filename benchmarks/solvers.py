@@ -2,11 +2,14 @@
 
 Relative pose: ours (5-point, OpenGV), pycolmap.estimate_essential_matrix, and
 cv2.findEssentialMat + cv2.recoverPose. Absolute pose: ours (P3P, OpenGV),
-pycolmap.estimate_absolute_pose, and cv2.solvePnPRansac (P3P, AP3P). Each library
-runs with its default RANSAC settings except the inlier threshold (1 px for all);
-every method sees the same problems. Prints a Markdown table.
+pycolmap.estimate_absolute_pose, and cv2.solvePnPRansac (P3P, AP3P). Camera rigs: ours
+(GP3P; 5+1-point, 6-point and 17-point generalized relative pose, OpenGV) against
+pycolmap.estimate_generalized_absolute_pose and estimate_generalized_relative_pose. Each
+library runs with its default RANSAC settings except the inlier threshold (1 px for all);
+every method sees the same problems. Prints Markdown tables.
 
     python benchmarks/solvers.py [--problems 20] [--sizes 200 2000] [--outliers 0.2 0.5]
+        [--rig-problems 5] [--rig-sizes 300] [--rig-outliers 0.2 0.5] [--tables single rig]
 """
 
 from __future__ import annotations
@@ -35,12 +38,21 @@ CAMERA = pycolmap.Camera(model="PINHOLE", width=SIZE, height=SIZE,
                          params=[FOCAL, FOCAL, SIZE / 2, SIZE / 2])
 
 
+# Rigs: three cameras on a ring of radius 1, looking outwards (cams_from_rig).
+RIG_RADIUS = 1.0
+RIG = [pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([0, -yaw, 0])), [0, 0, -RIG_RADIUS])
+       for yaw in 2 * np.pi * np.arange(3) / 3]
+
+
 @dataclass
 class Problem:
-    pose: pycolmap.Rigid3d  # cam2_from_cam1 (relative) or cam_from_world (absolute)
+    pose: pycolmap.Rigid3d  # cam2_from_cam1 or rig2_from_rig1 (relative), cam_from_world or
+    # rig_from_world (absolute)
     pixels1: np.ndarray  # (N, 2) first image (relative) or the only image (absolute)
     pixels2: np.ndarray | None  # (N, 2) second image (relative)
     points3D: np.ndarray | None  # (N, 3) world points (absolute)
+    cameras1: np.ndarray | None = None  # (N,) rigs: the camera of each pixels1 row
+    cameras2: np.ndarray | None = None  # (N,) rigs: the camera of each pixels2 row
 
 
 def random_rotation(rng: np.random.Generator, max_deg: float) -> pycolmap.Rotation3d:
@@ -88,6 +100,44 @@ def absolute_problem(rng: np.random.Generator, n: int, outlier_ratio: float) -> 
     pose = pycolmap.Rigid3d(random_rotation(rng, 180), rng.normal(size=3))
     X = (X_cam - pose.translation) @ pose.rotation.matrix()  # world points
     return Problem(pose, corrupt(rng, project(pose, X), outlier_ratio), None, X)
+
+
+def rig_absolute_problem(rng: np.random.Generator, n: int, outlier_ratio: float) -> Problem:
+    """Points seen by the rig's cameras at random, the rig anywhere."""
+    pose = pycolmap.Rigid3d(random_rotation(rng, 180), rng.normal(size=3))
+    cameras = rng.integers(0, len(RIG), n)
+    X_cam = scene_points(rng, n)
+    X = np.empty_like(X_cam)
+    for c, cam_from_rig in enumerate(RIG):
+        seen = cameras == c
+        world_from_cam = (cam_from_rig * pose).inverse()
+        X[seen] = X_cam[seen] @ world_from_cam.rotation.matrix().T + world_from_cam.translation
+    pixels = corrupt(rng, project(pycolmap.Rigid3d(), X_cam), outlier_ratio)
+    return Problem(pose, pixels, None, X, cameras)
+
+
+def rig_relative_problem(rng: np.random.Generator, n: int, outlier_ratio: float) -> Problem:
+    """The rig turns by a third of a turn (up to 30 deg more) and moves about 0.5: points
+    seen by one camera in frame 1 are seen by another in frame 2."""
+    third = pycolmap.Rotation3d(np.array([0, 2 * np.pi / len(RIG), 0]))
+    pose = pycolmap.Rigid3d(random_rotation(rng, 30) * third, rng.normal(size=3) * 0.3)
+    cameras1, pixels1, cameras2, pixels2 = [], [], [], []
+    while sum(map(len, cameras1)) < n:
+        c1 = int(rng.integers(0, len(RIG)))
+        X_cam1 = scene_points(rng, max(n // 10, 10))
+        X_rig1 = (X_cam1 - RIG[c1].translation) @ RIG[c1].rotation.matrix()
+        X_rig2 = X_rig1 @ pose.rotation.matrix().T + pose.translation
+        for c2, cam_from_rig in enumerate(RIG):
+            X_cam2 = X_rig2 @ cam_from_rig.rotation.matrix().T + cam_from_rig.translation
+            pixels = project(pycolmap.Rigid3d(), X_cam2)
+            seen = (X_cam2[:, 2] > 1) & np.all((pixels >= 0) & (pixels < SIZE), axis=1)
+            cameras1.append(np.full(seen.sum(), c1))
+            pixels1.append(project(pycolmap.Rigid3d(), X_cam1[seen]))
+            cameras2.append(np.full(seen.sum(), c2))
+            pixels2.append(pixels[seen])
+    pixels1, pixels2 = np.concatenate(pixels1)[:n], np.concatenate(pixels2)[:n]
+    return Problem(pose, corrupt(rng, pixels1, 0.0), corrupt(rng, pixels2, outlier_ratio), None,
+                   np.concatenate(cameras1)[:n], np.concatenate(cameras2)[:n])
 
 
 def normalized(pixels: np.ndarray) -> np.ndarray:
@@ -154,6 +204,37 @@ def opencv_absolute(flag):
     return run
 
 
+def ours_rig_relative(method):
+    def run(p: Problem):
+        return solvers.generalized_relative_pose(
+            normalized(p.pixels1), p.cameras1, normalized(p.pixels2), p.cameras2, RIG,
+            max_error=THRESHOLD_PX / FOCAL, method=method).rig2_from_rig1
+    return run
+
+
+def pycolmap_rig_relative(p: Problem):
+    options = pycolmap.RANSACOptions()
+    options.max_error = THRESHOLD_PX
+    out = pycolmap.estimate_generalized_relative_pose(
+        p.pixels1, p.pixels2, p.cameras1.tolist(), p.cameras2.tolist(), RIG,
+        [CAMERA] * len(RIG), options)
+    # pycolmap returns "pano2_from_pano1" (no metric translation) where it finds no scale.
+    return None if out is None else out.get("rig2_from_rig1")
+
+
+def ours_rig_absolute(p: Problem):
+    return solvers.generalized_absolute_pose(normalized(p.pixels1), p.cameras1, p.points3D, RIG,
+                                             max_error=THRESHOLD_PX / FOCAL).rig_from_world
+
+
+def pycolmap_rig_absolute(p: Problem):
+    options = pycolmap.RANSACOptions()
+    options.max_error = THRESHOLD_PX
+    out = pycolmap.estimate_generalized_absolute_pose(
+        p.pixels1, p.points3D, p.cameras1.tolist(), RIG, [CAMERA] * len(RIG), options)
+    return None if out is None else out["rig_from_world"]
+
+
 RELATIVE = {
     "ours (5-point Stewenius, OpenGV; default)": ours_relative("stewenius"),
     "ours (5-point Nister, OpenGV)": ours_relative("nister"),
@@ -167,10 +248,19 @@ ABSOLUTE = {
     "cv2.solvePnPRansac P3P": opencv_absolute(cv2.SOLVEPNP_P3P),
     "cv2.solvePnPRansac AP3P": opencv_absolute(cv2.SOLVEPNP_AP3P),
 }
-REFERENCE = ("pycolmap.estimate_essential_matrix", "pycolmap.estimate_absolute_pose")
+RIG_RELATIVE = {
+    "ours (5+1-point, OpenGV's 5-point; default)": ours_rig_relative("fivept_plus_one"),
+    "ours (6-point, OpenGV)": ours_rig_relative("sixpt"),
+    "ours (17-point, OpenGV)": ours_rig_relative("seventeenpt"),
+    "pycolmap.estimate_generalized_relative_pose": pycolmap_rig_relative,
+}
+RIG_ABSOLUTE = {
+    "ours (GP3P, OpenGV)": ours_rig_absolute,
+    "pycolmap.estimate_generalized_absolute_pose": pycolmap_rig_absolute,
+}
 
 
-def run_one(method, problem: Problem, relative: bool):
+def run_one(method, problem: Problem, direction_only: bool):
     start = time.perf_counter()
     try:
         estimate = method(problem)
@@ -179,16 +269,18 @@ def run_one(method, problem: Problem, relative: bool):
     elapsed = time.perf_counter() - start
     if estimate is None:
         return elapsed, np.nan, np.nan, True
-    if relative:
+    if direction_only:  # the translation of a single camera's relative pose has no scale
         t_err = direction_error_deg(estimate.translation, problem.pose.translation)
-    else:  # camera centre distance relative to the distance of the scene (about 6)
+    else:  # camera or rig centre distance relative to the distance of the scene (about 6)
         t_err = float(np.linalg.norm(estimate.inverse().translation
                                      - problem.pose.inverse().translation))
     return elapsed, rotation_error_deg(estimate, problem.pose), t_err, False
 
 
-def benchmark(methods: dict, make_problem, relative: bool, sizes, outlier_ratios,
+def benchmark(methods: dict, make_problem, direction_only: bool, sizes, outlier_ratios,
               num_problems: int, seed: int) -> list[str]:
+    """Table rows; times relative to the pycolmap method (the one named pycolmap.*)."""
+    reference = next(name for name in methods if name.startswith("pycolmap."))
     rows = []
     for n in sizes:
         for ratio in outlier_ratios:
@@ -197,8 +289,8 @@ def benchmark(methods: dict, make_problem, relative: bool, sizes, outlier_ratios
             stats = {name: [] for name in methods}
             for problem in problems:  # interleaved, so that load changes hit every method
                 for name, method in methods.items():
-                    stats[name].append(run_one(method, problem, relative))
-            reference_ms = np.median([s[0] for s in stats[REFERENCE[0 if relative else 1]]]) * 1e3
+                    stats[name].append(run_one(method, problem, direction_only))
+            reference_ms = np.median([s[0] for s in stats[reference]]) * 1e3
             for name, values in stats.items():
                 times, r_err, t_err, failed = map(np.asarray, zip(*values))
                 ms = np.median(times) * 1e3
@@ -236,14 +328,22 @@ def main() -> None:
     parser.add_argument("--sizes", type=int, nargs="+", default=[200, 2000])
     parser.add_argument("--outliers", type=float, nargs="+", default=[0.2, 0.5])
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--rig-problems", type=int, default=5,
+                        help="random rig problems per setting (pycolmap's take seconds each)")
+    parser.add_argument("--rig-sizes", type=int, nargs="+", default=[300])
+    parser.add_argument("--rig-outliers", type=float, nargs="+", default=[0.2, 0.5])
+    parser.add_argument("--tables", nargs="+", choices=["single", "rig"], default=["single", "rig"],
+                        help="single cameras, camera rigs or both")
     args = parser.parse_args()
 
     # Warm-up: first calls pay for lazy initialisation in every library.
     warm = np.random.default_rng(1)
-    for methods, make, rel in ((RELATIVE, relative_problem, True),
-                               (ABSOLUTE, absolute_problem, False)):
+    for methods, make, direction_only in ((RELATIVE, relative_problem, True),
+                                          (ABSOLUTE, absolute_problem, False),
+                                          (RIG_RELATIVE, rig_relative_problem, False),
+                                          (RIG_ABSOLUTE, rig_absolute_problem, False)):
         for method in methods.values():
-            run_one(method, make(warm, 100, 0.2), rel)
+            run_one(method, make(warm, 100, 0.0), direction_only)
 
     ours = inspect.signature(solvers.relative_pose).parameters
     essential = pycolmap.RANSACOptions()
@@ -254,7 +354,8 @@ def main() -> None:
           f"pycolmap {pycolmap.__version__}, OpenCV {cv2.__version__}, NumPy {np.__version__}.\n")
     print(f"Inputs: f = {FOCAL:.0f} px, {SIZE}x{SIZE} images, {NOISE_PX} px Gaussian noise, "
           f"scene depth 4 to 8, outliers uniform over the image, {args.problems} random "
-          f"problems per row (seed {args.seed}), the same problems for every method. "
+          f"problems per row of the single-camera tables (seed {args.seed}), the same problems "
+          "for every method. "
           f"Threshold {THRESHOLD_PX} px for every method; every other RANSAC setting is the "
           f"library's default: ours confidence {ours['confidence'].default}, "
           f"{ours['min_iterations'].default} to {ours['max_iterations'].default} iterations; "
@@ -268,18 +369,35 @@ def main() -> None:
           "median over the problems; rotation in degrees; translation as the angle to the "
           "true direction in degrees (relative pose) or as the camera-centre distance in "
           "scene units (absolute pose). 'failed': calls without a result.")
+    print(f"Rigs: three cameras on a ring of radius {RIG_RADIUS} (scene units), looking "
+          f"outwards; {args.rig_problems} random problems per row (seed {args.seed}). "
+          "Absolute: each point seen by one camera at random. Relative: the rig turns by a "
+          "third of a turn (up to 30 deg more: exactly a third would carry each camera onto "
+          "another's place and leave the scale open) and moves about 0.5, points seen by one "
+          "camera in each frame (mostly different cameras). Translation errors: distance of the rig "
+          "centres in scene units (the rig's baseline gives the relative pose its scale). "
+          "Same thresholds and default RANSAC settings (pycolmap: RANSACOptions()).")
     header = ["| N | outliers | method | time (ms) | pycolmap time / this | rotation err (deg) "
               "| {} | failed |", "|---|---|---|---|---|---|---|---|"]
-    print("\n### Relative pose (essential matrix)\n")
-    print(header[0].format("translation dir. err (deg)"))
-    print(header[1])
-    print("\n".join(benchmark(RELATIVE, relative_problem, True, args.sizes, args.outliers,
-                              args.problems, args.seed)))
-    print("\n### Absolute pose (P3P)\n")
-    print(header[0].format("centre err"))
-    print(header[1])
-    print("\n".join(benchmark(ABSOLUTE, absolute_problem, False, args.sizes, args.outliers,
-                              args.problems, args.seed)))
+    tables = []
+    if "single" in args.tables:
+        tables += [("Relative pose (essential matrix)", "translation dir. err (deg)", RELATIVE,
+                    relative_problem, True, args.sizes, args.outliers, args.problems),
+                   ("Absolute pose (P3P)", "centre err", ABSOLUTE, absolute_problem, False,
+                    args.sizes, args.outliers, args.problems)]
+    if "rig" in args.tables:
+        tables += [("Generalized relative pose (camera rigs)", "rig centre err", RIG_RELATIVE,
+                    rig_relative_problem, False, args.rig_sizes, args.rig_outliers,
+                    args.rig_problems),
+                   ("Generalized absolute pose (camera rigs)", "rig centre err", RIG_ABSOLUTE,
+                    rig_absolute_problem, False, args.rig_sizes, args.rig_outliers,
+                    args.rig_problems)]
+    for title, error_name, methods, make, direction_only, sizes, outliers, problems in tables:
+        print(f"\n### {title}\n")
+        print(header[0].format(error_name))
+        print(header[1])
+        print("\n".join(benchmark(methods, make, direction_only, sizes, outliers, problems,
+                                  args.seed)), flush=True)
 
 
 if __name__ == "__main__":

@@ -9,10 +9,12 @@ import numpy as np
 import pycolmap
 
 from solvers import _opengv
-from solvers.checks import as_points3D, as_rays, check_positive, check_same_length, check_choice
+from solvers.checks import (as_camera_index, as_points3D, as_pose_rows, as_rays, check_choice,
+                            check_positive, check_rig_has_baseline, check_same_length)
 
 RELATIVE_METHODS = ("stewenius", "nister")
 ABSOLUTE_METHODS = ("kneip", "gao")
+GENERALIZED_RELATIVE_METHODS = ("sixpt", "fivept_plus_one", "seventeenpt")
 
 
 class EstimationError(RuntimeError):
@@ -31,6 +33,22 @@ class RelativePoseResult:
 @dataclass(frozen=True)
 class AbsolutePoseResult:
     cam_from_world: pycolmap.Rigid3d
+    inlier_mask: np.ndarray  # (N,) bool
+    num_inliers: int
+    num_iterations: int
+
+
+@dataclass(frozen=True)
+class GeneralizedRelativePoseResult:
+    rig2_from_rig1: pycolmap.Rigid3d  # metric: the rig's baseline fixes the scale
+    inlier_mask: np.ndarray  # (N,) bool
+    num_inliers: int
+    num_iterations: int
+
+
+@dataclass(frozen=True)
+class GeneralizedAbsolutePoseResult:
+    rig_from_world: pycolmap.Rigid3d
     inlier_mask: np.ndarray  # (N,) bool
     num_inliers: int
     num_iterations: int
@@ -101,6 +119,79 @@ def absolute_pose(rays, points3D, *, max_error: float, method: str = "kneip",
                               out["num_inliers"], out["num_iterations"])
 
 
+def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
+                              cams_from_rig: list[pycolmap.Rigid3d], *, max_error: float,
+                              method: str = "fivept_plus_one", max_iterations: int = 10000,
+                              min_iterations: int = 10, confidence: float = 0.9999,
+                              min_num_inliers: int = 15,
+                              seed: int | None = None) -> GeneralizedRelativePoseResult:
+    """rig2_from_rig1 between two frames of one camera rig, by LO-MSAC over OpenGV's
+    generalized relative pose solvers.
+
+    Correspondence i is ray `rays1[i]` of camera `camera_index1[i]` in frame 1 and
+    `rays2[i]` of camera `camera_index2[i]` in frame 2; `cams_from_rig[c]` is camera c's
+    pose in the rig. The translation is metric: the rig needs cameras at different
+    centres. `max_error` bounds each pair's Sampson error in normalized image units (as
+    `relative_pose`'s). `method`:
+    - "fivept_plus_one" (default): the 5-point solver on five correspondences of one
+      camera pair, the scale from a sixth of another pair; needs a camera pair with five
+      correspondences and another with one (a rig moving, its cameras seeing the scene
+      again), and is the fastest by far (BENCHMARKS.md).
+    - "sixpt": Stewenius' generalized 6-point solver, for any correspondences; each
+      sample takes milliseconds.
+    - "seventeenpt": Li's linear 17 points, whose sample needs far more iterations with
+      outliers.
+    Samples of a single camera pair are skipped: they leave the scale open. The pose is
+    refined on the inliers (Sampson errors, Levenberg-Marquardt). Raises EstimationError
+    when fewer than `min_num_inliers` correspondences agree.
+    """
+    check_choice("method", method, GENERALIZED_RELATIVE_METHODS)
+    f1, f2 = as_rays(rays1, "rays1"), as_rays(rays2, "rays2")
+    rig = as_pose_rows(cams_from_rig, "cams_from_rig")
+    check_rig_has_baseline(rig, "cams_from_rig")
+    c1 = as_camera_index(camera_index1, "camera_index1", len(rig))
+    c2 = as_camera_index(camera_index2, "camera_index2", len(rig))
+    sample_size = 17 if method == "seventeenpt" else 6
+    check_same_length(f1, f2, "rays1", "rays2", minimum=sample_size)
+    check_same_length(f1, c1, "rays1", "camera_index1")
+    check_same_length(f2, c2, "rays2", "camera_index2")
+    out = _opengv.generalized_relative_pose(f1, c1, f2, c2, rig, method, **_ransac_kwargs(
+        max_error, max_iterations, min_iterations, confidence, seed))
+    need = max(sample_size, min_num_inliers)
+    if not out["success"] or out["num_inliers"] < need:
+        raise EstimationError(f"no generalized relative pose: {out['num_inliers']} of "
+                              f"{len(f1)} correspondences agree (need {need})")
+    return GeneralizedRelativePoseResult(rigid3d(out["R"], out["t"]), out["inlier_mask"],
+                                         out["num_inliers"], out["num_iterations"])
+
+
+def generalized_absolute_pose(rays, camera_index, points3D, cams_from_rig: list[pycolmap.Rigid3d],
+                              *, max_error: float, max_iterations: int = 10000,
+                              min_iterations: int = 10, confidence: float = 0.9999,
+                              min_num_inliers: int = 6,
+                              seed: int | None = None) -> GeneralizedAbsolutePoseResult:
+    """rig_from_world of a camera rig by GP3P (OpenGV) LO-MSAC, refined on the inliers.
+
+    Ray `rays[i]` of camera `camera_index[i]` sees world point `points3D[i]`;
+    `cams_from_rig[c]` is camera c's pose in the rig. `max_error` bounds the reprojection
+    error in the observing camera's normalized image units (as `absolute_pose`'s). Raises
+    EstimationError when fewer than `min_num_inliers` correspondences agree.
+    """
+    f, X = as_rays(rays, "rays"), as_points3D(points3D, "points3D")
+    rig = as_pose_rows(cams_from_rig, "cams_from_rig")
+    cameras = as_camera_index(camera_index, "camera_index", len(rig))
+    check_same_length(f, X, "rays", "points3D", minimum=3)
+    check_same_length(f, cameras, "rays", "camera_index")
+    out = _opengv.generalized_absolute_pose(f, cameras, X, rig, **_ransac_kwargs(
+        max_error, max_iterations, min_iterations, confidence, seed))
+    need = max(4, min_num_inliers)
+    if not out["success"] or out["num_inliers"] < need:
+        raise EstimationError(f"no generalized absolute pose: {out['num_inliers']} of "
+                              f"{len(f)} correspondences agree (need {need})")
+    return GeneralizedAbsolutePoseResult(rigid3d(out["R"], out["t"]), out["inlier_mask"],
+                                         out["num_inliers"], out["num_iterations"])
+
+
 def five_point(rays1, rays2, *, method: str = "stewenius") -> list[np.ndarray]:
     """Every essential matrix (x2^T E x1 = 0, unit Frobenius norm) fitting five ray pairs."""
     check_choice("method", method, RELATIVE_METHODS)
@@ -142,8 +233,7 @@ def triangulate_tracks(cams_from_world: list[pycolmap.Rigid3d], view_index, poin
         raise ValueError("point_index out of range of num_points")
     if not np.isfinite(min_angle_deg) or min_angle_deg < 0:
         raise ValueError(f"min_angle_deg must be finite and >= 0, got {min_angle_deg}")
-    poses = np.array([pose.matrix().reshape(-1) for pose in cams_from_world],
-                     dtype=np.float64).reshape(-1, 12)
+    poses = as_pose_rows(cams_from_world, "cams_from_world")
     return _opengv.triangulate_tracks(poses, views, points, f, int(num_points),
                                       float(min_angle_deg))
 

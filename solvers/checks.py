@@ -54,3 +54,33 @@ def check_positive(name: str, value: float) -> None:
 def check_choice(name: str, value: str, choices: tuple[str, ...]) -> None:
     if value not in choices:
         raise ValueError(f"unknown {name} {value!r}; choose one of {', '.join(choices)}")
+
+
+def as_pose_rows(poses, name: str) -> np.ndarray:
+    """(K, 12) rows of the 3x4 matrices [R | t] of a sequence of `pycolmap.Rigid3d`."""
+    try:
+        rows = [pose.matrix().reshape(-1) for pose in poses]
+    except (TypeError, AttributeError):
+        raise ValueError(f"{name} must be a sequence of pycolmap.Rigid3d") from None
+    return np.array(rows, dtype=np.float64).reshape(-1, 12)
+
+
+def as_camera_index(values, name: str, num_cameras: int) -> np.ndarray:
+    """(N,) int32 indices into a rig's `num_cameras` cameras."""
+    array = np.asarray(values)
+    if array.ndim != 1 or not (array.size == 0 or np.issubdtype(array.dtype, np.integer)):
+        raise ValueError(f"{name} must be a 1-D array of integers, got shape {array.shape} "
+                         f"and dtype {array.dtype}")
+    if array.size and (array.min() < 0 or array.max() >= num_cameras):
+        raise ValueError(f"{name} out of range of the rig's {num_cameras} cameras")
+    return np.ascontiguousarray(array, dtype=np.int32)
+
+
+def check_rig_has_baseline(cams_from_rig_rows: np.ndarray, name: str) -> None:
+    """A generalized relative pose needs cameras at two centres at least: the baseline
+    gives the translation its scale."""
+    matrices = cams_from_rig_rows.reshape(-1, 3, 4)
+    centres = -np.einsum("kji,kj->ki", matrices[:, :, :3], matrices[:, :, 3])  # -R^T t
+    if len(centres) == 0 or np.ptp(centres, axis=0).max() <= 1e-9 * max(1.0, np.abs(centres).max()):
+        raise ValueError(f"{name}: the rig's cameras share one centre (no baseline); "
+                         "use relative_pose for a single camera")

@@ -4,6 +4,7 @@ real COLMAP 3.8 clients on templeSparseRing (skipped without the `colmap` binary
 
 from __future__ import annotations
 
+import argparse
 import copy
 import dataclasses
 import hashlib
@@ -19,7 +20,9 @@ import pycolmap
 import pytest
 
 from colmap_ext.mapper import cli
-from colmap_ext.mapper.flags import FLAGS, BY_NAME, get_field, pycolmap_options, read_project
+from colmap_ext.errors import UserError
+from colmap_ext.mapper.flags import (FLAGS, BY_NAME, PATH_ALIASES, get_field, mapper_options,
+                                     pycolmap_options, read_project)
 from colmap_ext.evaluate import evaluate
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper.options import MapperOptions, OptionError
@@ -27,9 +30,36 @@ from colmap_ext.mapper.options import MapperOptions, OptionError
 CLI = [sys.executable, "-m", "colmap_ext", "mapper"]
 TEMPLE_CAMERA = "1520.4,1525.9,302.32,246.87"
 # pycolmap fields without an option of their own: arguments of the call (image_path,
-# image_names), sets with no command-line form (intrinsics are constant here anyway), and
-# sub-option fields COLMAP copies from the pipeline's.
+# image_names), sets that COLMAP 4's command line reads from list files
+# (Mapper.constant_rig_list_path, Mapper.constant_camera_list_path), and sub-option fields
+# COLMAP copies from the pipeline's.
 NOT_OPTIONS = {"image_path", "image_names", "constant_rigs", "constant_cameras"}
+
+
+# COLMAP 4's `Mapper.*` options: OptionManager::AddMapperOptions in
+# src/colmap/controllers/option_manager.cc (69 there), and the two bundle-adjustment
+# backends COLMAP 4.1 added (IncrementalPipelineOptions.ba_local_backend, ba_global_backend).
+COLMAP4_MAPPER_OPTIONS = [f"Mapper.{name}" for name in """
+    min_num_matches ignore_watermarks multiple_models max_num_models max_model_overlap
+    min_model_size init_image_id1 init_image_id2 init_num_trials
+    structure_less_registration_fallback structure_less_registration_only extract_colors
+    num_threads random_seed min_focal_length_ratio max_focal_length_ratio max_extra_param
+    ba_refine_focal_length ba_refine_principal_point ba_refine_extra_params
+    ba_refine_sensor_from_rig ba_local_function_tolerance ba_local_max_num_iterations
+    ba_global_frames_ratio ba_global_points_ratio ba_global_frames_freq ba_global_points_freq
+    ba_global_function_tolerance ba_global_max_num_iterations ba_global_max_refinements
+    ba_global_max_refinement_change ba_local_max_refinements ba_local_max_refinement_change
+    ba_use_gpu ba_gpu_index ba_min_num_residuals_for_cpu_multi_threading snapshot_path
+    snapshot_frames_freq fix_existing_frames init_min_num_inliers init_max_error
+    init_max_forward_motion init_min_tri_angle init_max_reg_trials abs_pose_max_error
+    abs_pose_min_num_inliers abs_pose_min_inlier_ratio filter_max_reproj_error
+    filter_min_tri_angle max_reg_trials ba_local_num_images ba_local_min_tri_angle
+    ba_global_ignore_redundant_points3D ba_global_ignore_redundant_points3D_min_coverage_gain
+    image_list_path constant_rig_list_path constant_camera_list_path max_runtime_seconds
+    tri_max_transitivity tri_create_max_angle_error tri_continue_max_angle_error
+    tri_merge_max_reproj_error tri_complete_max_reproj_error tri_complete_max_transitivity
+    tri_re_max_angle_error tri_re_min_ratio tri_re_max_trials tri_min_angle
+    tri_ignore_two_view_tracks ba_local_backend ba_global_backend""".split()]
 
 
 def pycolmap_fields() -> list[str]:
@@ -50,6 +80,34 @@ def test_table_covers_every_pycolmap_option():
         assert flag.help, flag.name
         if flag.field is not None:
             get_field(defaults, flag.field)  # an AttributeError names a field that is not there
+
+
+def test_table_covers_colmap4s_mapper_options():
+    """Every `Mapper.*` option of COLMAP 4 is accepted on the command line, as a COLMAP 4
+    user types it (`--Mapper.random_seed 0`), and in a project file's [Mapper] section."""
+    assert len(COLMAP4_MAPPER_OPTIONS) == len(set(COLMAP4_MAPPER_OPTIONS)) == 71
+    assert sorted(set(COLMAP4_MAPPER_OPTIONS) - set(BY_NAME) - set(PATH_ALIASES)) == []
+    parser = argparse.ArgumentParser()
+    cli.add_arguments(parser)
+    for name in COLMAP4_MAPPER_OPTIONS:
+        parser.parse_args([f"--{name}", "1"])  # argparse exits on an unknown flag
+
+
+def test_colmap4_names_of_our_options(tmp_path):
+    assert mapper_options({"Mapper.random_seed": 0}).seed == 0
+    project = tmp_path / "project.ini"
+    project.write_text("[Mapper]\nimage_list_path=images.txt\nrandom_seed=3\n")
+    values, paths = read_project(project)
+    assert values == {"Mapper.random_seed": 3} and paths == {"image_list_path": "images.txt"}
+    cameras = tmp_path / "cameras.txt"
+    cameras.write_text("1\n\n3\n")
+    options = mapper_options({"Mapper.constant_camera_list_path": str(cameras)})
+    assert options.bundle_adjustment.constant_camera_ids == (1, 3)
+    cameras.write_text("1\nfront\n")
+    with pytest.raises(UserError, match="expected one camera id per line"):
+        mapper_options({"Mapper.constant_camera_list_path": str(cameras)})
+    with pytest.raises(UserError, match="cannot read camera list"):
+        mapper_options({"Mapper.constant_camera_list_path": str(tmp_path / "missing.txt")})
 
 
 def test_pycolmap_options_set_our_fields_and_name_what_does_not_apply(caplog):
@@ -438,6 +496,12 @@ def test_refining_the_focal_length_on_request(synthetic_ring, tmp_path):
     assert np.array_equal(refined.params[2:], given[2:])  # only what was asked for
     errors = ring_errors(tmp_path / "refined" / "0", scene)
     assert errors["num_registered"] == 12 and errors["R_err_max_deg"] < 0.2
+    # A camera in --Mapper.constant_camera_list_path stays as given (COLMAP 4's option).
+    (tmp_path / "constant_cameras.txt").write_text("1\n")
+    map_ring(tmp_path / "ring", tmp_path / "listed", "--Mapper.ba_refine_focal_length", "1",
+             "--Mapper.constant_camera_list_path", tmp_path / "constant_cameras.txt")
+    listed = pycolmap.Reconstruction(tmp_path / "listed" / "0").cameras[1]
+    assert np.array_equal(listed.params, given)
 
 
 def test_snapshots_every_n_registered_images(synthetic_ring, tmp_path):

@@ -29,6 +29,14 @@ ABSOLUTE_MAX_ROTATION_DEG = 0.09  # worst 0.029 (300 points)
 ABSOLUTE_MAX_TRANSLATION_DEG = 0.75  # worst 0.243 (t's direction is unstable when |t| is small)
 ABSOLUTE_MAX_CENTRE_ERROR = 0.007  # worst 0.0022, scene 4.5 away
 MIN_INLIER_AGREEMENT = 0.96  # worst 0.988 (1.2 % of the labels wrong)
+# Rigs of three cameras 1 from the rig's centre (RIG), 0.5 px noise, about 3x the worst
+# error measured over 12 scenes per outlier ratio 0, 0.2, 0.3, 0.4 (RANSAC seeds 1 to 12;
+# relative pose: 6-point and 5+1-point):
+RIG_ABSOLUTE_MAX_ROTATION_DEG = 0.025  # worst 0.0077
+RIG_ABSOLUTE_MAX_CENTRE_ERROR = 0.0025  # worst 0.00077, scene 4.5 away
+RIG_RELATIVE_MAX_ROTATION_DEG = 0.4  # worst 0.128 (0.386 at 60 % outliers)
+RIG_RELATIVE_MAX_TRANSLATION_ERROR = 0.7  # worst 0.22 (pycolmap's 0.61), rig moving about 0.5
+RIG_OUTLIER_RATIOS = [0.0, 0.2, 0.4]
 
 
 # ---------------------------------------------------------------- synthetic scenes
@@ -699,3 +707,250 @@ def test_fuzz_triangulate(inputs):
     assert np.mean(valid[true]) >= FUZZ_TRIANGULATION_MIN_VALID
     assert np.abs(points[valid & true] - scene.X[:len(a)][valid & true]).max() \
         < FUZZ_TRIANGULATION_MAX_ERROR
+
+
+# ---------------------------------------------------------------- camera rigs (generalized solvers)
+
+def ring_rig(num_cameras: int = 3, radius: float = 0.3) -> list[pycolmap.Rigid3d]:
+    """cams_from_rig of cameras on a horizontal ring, each looking outwards."""
+    cams = []
+    for k in range(num_cameras):
+        yaw = 2 * np.pi * k / num_cameras
+        R = pycolmap.Rotation3d(np.array([0, -yaw, 0])).matrix()  # looks along rig's (sin, 0, cos)
+        centre = radius * np.array([np.sin(yaw), 0, np.cos(yaw)])
+        cams.append(pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ centre))
+    return cams
+
+
+RIG = ring_rig(radius=1.0)
+
+
+@dataclass
+class RigOneView:
+    pose: pycolmap.Rigid3d  # rig_from_world
+    camera_index: np.ndarray  # (N,) camera of each observation
+    X: np.ndarray  # (N, 3) world points
+    x: np.ndarray  # (N, 2) normalized image points in their cameras, noisy, outliers random
+    inliers: np.ndarray
+
+
+def rig_one_view(seed: int, n: int = 300, outlier_ratio: float = 0.0,
+                 noise: float = NOISE) -> RigOneView:
+    rng = np.random.default_rng(seed)
+    pose = pycolmap.Rigid3d(rotation(rng, 180), rng.normal(size=3) * 2)
+    camera_index = rng.integers(0, len(RIG), n)
+    X_cam = points_in_view(rng, n)
+    X = np.empty_like(X_cam)
+    for c, cam_from_rig in enumerate(RIG):
+        seen = camera_index == c
+        X[seen] = transform((cam_from_rig * pose).inverse(), X_cam[seen])
+    x = project(X_cam) + rng.normal(0, noise, (n, 2))
+    inliers = np.ones(n, bool)
+    inliers[rng.permutation(n)[:round(outlier_ratio * n)]] = False
+    x[~inliers] = rng.uniform(-0.5, 0.5, (np.count_nonzero(~inliers), 2))
+    return RigOneView(pose, camera_index, X, x, inliers)
+
+
+@dataclass
+class RigTwoView:
+    pose: pycolmap.Rigid3d  # rig2_from_rig1, metric
+    camera_index1: np.ndarray
+    x1: np.ndarray  # (N, 2) normalized, noisy
+    camera_index2: np.ndarray
+    x2: np.ndarray  # (N, 2) normalized, noisy, outliers random
+    inliers: np.ndarray
+
+
+def rig_two_view(seed: int, n: int = 300, outlier_ratio: float = 0.0,
+                 noise: float = NOISE) -> RigTwoView:
+    """The rig turns by a third of a turn (up to 10 deg more) and moves about 0.5: most
+    points are seen by one camera in frame 1 and by the next in frame 2."""
+    rng = np.random.default_rng(seed)
+    third = pycolmap.Rotation3d(np.array([0, 2 * np.pi / len(RIG), 0]))
+    pose = pycolmap.Rigid3d(rotation(rng, 10) * third, rng.normal(size=3) * 0.3)
+    candidates = 10 * n
+    camera_index1 = rng.integers(0, len(RIG), candidates)
+    X_cam1 = points_in_view(rng, candidates)
+    X_rig2 = np.empty_like(X_cam1)
+    for c, cam_from_rig in enumerate(RIG):
+        seen = camera_index1 == c
+        X_rig2[seen] = transform(pose * cam_from_rig.inverse(), X_cam1[seen])
+    camera_index2 = np.full(candidates, -1)
+    x2 = np.zeros((candidates, 2))
+    for c, cam_from_rig in enumerate(RIG):  # the camera nearest the point's direction
+        X_cam2 = transform(cam_from_rig, X_rig2)
+        x = project(X_cam2)
+        seen = (X_cam2[:, 2] > 1) & (np.abs(x).max(axis=1) < 0.5) & (camera_index2 < 0)
+        camera_index2[seen], x2[seen] = c, x[seen]
+    keep = np.flatnonzero(camera_index2 >= 0)[:n]
+    assert len(keep) == n
+    x1 = project(X_cam1[keep]) + rng.normal(0, noise, (n, 2))
+    x2 = x2[keep] + rng.normal(0, noise, (n, 2))
+    inliers = np.ones(n, bool)
+    inliers[rng.permutation(n)[:round(outlier_ratio * n)]] = False
+    x2[~inliers] = rng.uniform(-0.5, 0.5, (np.count_nonzero(~inliers), 2))
+    return RigTwoView(pose, camera_index1[keep], x1, camera_index2[keep], x2, inliers)
+
+
+def centre_distance(a: pycolmap.Rigid3d, b: pycolmap.Rigid3d) -> float:
+    return float(np.linalg.norm(a.inverse().translation - b.inverse().translation))
+
+
+def generalized_absolute(scene: RigOneView, **kwargs) -> solvers.GeneralizedAbsolutePoseResult:
+    return solvers.generalized_absolute_pose(scene.x, scene.camera_index, scene.X, RIG,
+                                             max_error=MAX_ERROR, **kwargs)
+
+
+def generalized_relative(scene: RigTwoView, **kwargs) -> solvers.GeneralizedRelativePoseResult:
+    return solvers.generalized_relative_pose(scene.x1, scene.camera_index1, scene.x2,
+                                             scene.camera_index2, RIG, max_error=MAX_ERROR,
+                                             **kwargs)
+
+
+def test_generalized_absolute_pose_exact_without_noise():
+    scene = rig_one_view(seed=3, n=50, noise=0.0)
+    result = generalized_absolute(scene, seed=1)
+    assert_valid_pose(result.rig_from_world)
+    assert rotation_error_deg(result.rig_from_world, scene.pose) < 1e-7
+    assert centre_distance(result.rig_from_world, scene.pose) < 1e-9
+    assert result.inlier_mask.all()
+
+
+@pytest.mark.parametrize("outlier_ratio", RIG_OUTLIER_RATIOS)
+def test_generalized_absolute_pose_recovers_truth(outlier_ratio):
+    scene = rig_one_view(seed=int(outlier_ratio * 100), outlier_ratio=outlier_ratio)
+    result = generalized_absolute(scene, seed=1)
+    assert_valid_pose(result.rig_from_world)
+    assert result.inlier_mask.shape == scene.inliers.shape
+    assert result.num_inliers == np.count_nonzero(result.inlier_mask)
+    assert rotation_error_deg(result.rig_from_world, scene.pose) < RIG_ABSOLUTE_MAX_ROTATION_DEG
+    assert centre_distance(result.rig_from_world, scene.pose) < RIG_ABSOLUTE_MAX_CENTRE_ERROR
+    assert np.mean(result.inlier_mask == scene.inliers) > MIN_INLIER_AGREEMENT
+
+
+def test_generalized_absolute_pose_of_one_camera_is_absolute_pose():
+    """A rig of one camera at the rig's origin is a single camera: the same pose as P3P's."""
+    scene = one_view(seed=5, outlier_ratio=0.2)
+    single = solvers.absolute_pose(scene.x, scene.X, max_error=MAX_ERROR, seed=1)
+    rig = solvers.generalized_absolute_pose(scene.x, np.zeros(len(scene.x), int), scene.X,
+                                            [pycolmap.Rigid3d()], max_error=MAX_ERROR, seed=1)
+    assert rotation_error_deg(rig.rig_from_world, single.cam_from_world) < 1e-6
+    assert centre_distance(rig.rig_from_world, single.cam_from_world) < 1e-6
+    assert (rig.inlier_mask == single.inlier_mask).all()
+
+
+@pytest.mark.parametrize("method", ["fivept_plus_one", "sixpt", "seventeenpt"])
+def test_generalized_relative_pose_exact_without_noise(method):
+    scene = rig_two_view(seed=3, n=60, noise=0.0)
+    result = generalized_relative(scene, method=method, seed=1)
+    assert_valid_pose(result.rig2_from_rig1)
+    assert rotation_error_deg(result.rig2_from_rig1, scene.pose) < 1e-6
+    assert np.linalg.norm(result.rig2_from_rig1.translation - scene.pose.translation) < 1e-7
+    assert result.inlier_mask.all()
+
+
+@pytest.mark.parametrize("method, outlier_ratio", [
+    *(("fivept_plus_one", ratio) for ratio in RIG_OUTLIER_RATIOS),
+    ("sixpt", 0.0), ("sixpt", 0.2), ("sixpt", 0.4), ("seventeenpt", 0.0), ("seventeenpt", 0.1)])
+def test_generalized_relative_pose_recovers_truth(method, outlier_ratio):
+    scene = rig_two_view(seed=int(outlier_ratio * 100), outlier_ratio=outlier_ratio)
+    result = generalized_relative(scene, method=method, seed=1)
+    assert_valid_pose(result.rig2_from_rig1)
+    assert result.num_inliers == np.count_nonzero(result.inlier_mask)
+    assert rotation_error_deg(result.rig2_from_rig1, scene.pose) < RIG_RELATIVE_MAX_ROTATION_DEG
+    assert np.linalg.norm(result.rig2_from_rig1.translation - scene.pose.translation) \
+        < RIG_RELATIVE_MAX_TRANSLATION_ERROR
+    assert np.mean(result.inlier_mask == scene.inliers) > MIN_INLIER_AGREEMENT
+
+
+def rig_pixels(camera_index: np.ndarray) -> list[int]:
+    return [int(c) for c in camera_index]
+
+
+def test_generalized_absolute_pose_agrees_with_pycolmap():
+    scene = rig_one_view(seed=7, outlier_ratio=0.3)
+    ours = generalized_absolute(scene, seed=2)
+    options = pycolmap.RANSACOptions()
+    options.max_error = MAX_ERROR * FOCAL
+    options.random_seed = 2
+    theirs = pycolmap.estimate_generalized_absolute_pose(
+        pixels(scene.x), scene.X, rig_pixels(scene.camera_index), RIG, [CAMERA] * len(RIG),
+        options)
+    assert rotation_error_deg(ours.rig_from_world, theirs["rig_from_world"]) < 0.05
+    assert centre_distance(ours.rig_from_world, theirs["rig_from_world"]) < 0.01
+    assert np.mean(ours.inlier_mask == theirs["inlier_mask"]) > 0.98
+    # At least as close to the truth (ours refines on all inliers; a little slack for noise).
+    assert rotation_error_deg(ours.rig_from_world, scene.pose) \
+        <= rotation_error_deg(theirs["rig_from_world"], scene.pose) + 0.002
+
+
+def test_generalized_relative_pose_agrees_with_pycolmap():
+    """The same inliers as pycolmap's, and a pose at least as close to the truth: the
+    rig's baseline fixes the translation's scale only weakly (points 3 to 6 away from
+    cameras 1 apart), and the two differ mostly there."""
+    scene = rig_two_view(seed=7, outlier_ratio=0.2)
+    ours = generalized_relative(scene, seed=2)
+    options = pycolmap.RANSACOptions()
+    options.max_error = MAX_ERROR * FOCAL
+    options.random_seed = 2
+    theirs = pycolmap.estimate_generalized_relative_pose(
+        pixels(scene.x1), pixels(scene.x2), rig_pixels(scene.camera_index1),
+        rig_pixels(scene.camera_index2), RIG, [CAMERA] * len(RIG), options)
+    assert np.mean(ours.inlier_mask == theirs["inlier_mask"]) > 0.97
+    assert rotation_error_deg(ours.rig2_from_rig1, scene.pose) \
+        <= rotation_error_deg(theirs["rig2_from_rig1"], scene.pose) + 0.01
+    assert np.linalg.norm(ours.rig2_from_rig1.translation - scene.pose.translation) \
+        <= np.linalg.norm(theirs["rig2_from_rig1"].translation - scene.pose.translation) + 0.02
+
+
+@pytest.mark.parametrize("method", ["fivept_plus_one", "sixpt"])
+def test_generalized_relative_pose_refuses_a_single_camera_pair(method):
+    """Correspondences of one camera pair leave the scale open: no pose, not a wrong one."""
+    scene = rig_two_view(seed=5, n=300)
+    one_pair = (scene.camera_index1 == 0) & (scene.camera_index2 == 1)
+    n = int(one_pair.sum())
+    assert n >= 50
+    assert_refused(lambda: solvers.generalized_relative_pose(
+        scene.x1[one_pair], scene.camera_index1[one_pair], scene.x2[one_pair],
+        scene.camera_index2[one_pair], RIG, max_error=MAX_ERROR, method=method, seed=0),
+        "generalized relative", n, 15)
+
+
+RIG_VIEW = rig_one_view(seed=8, n=20)
+RIG_PAIR = rig_two_view(seed=8, n=20)
+
+
+@pytest.mark.parametrize("call, message", [
+    (lambda: solvers.generalized_absolute_pose(RIG_VIEW.x, RIG_VIEW.camera_index + 3, RIG_VIEW.X,
+                                               RIG, max_error=1e-3), r"camera_index out of range"),
+    (lambda: solvers.generalized_absolute_pose(RIG_VIEW.x, RIG_VIEW.camera_index * 1.0, RIG_VIEW.X,
+                                               RIG, max_error=1e-3), r"camera_index .*integers"),
+    (lambda: solvers.generalized_absolute_pose(RIG_VIEW.x, RIG_VIEW.camera_index[:5], RIG_VIEW.X,
+                                               RIG, max_error=1e-3), r"differ in length"),
+    (lambda: solvers.generalized_absolute_pose(RIG_VIEW.x, RIG_VIEW.camera_index, RIG_VIEW.X,
+                                               [np.eye(4)], max_error=1e-3),
+     r"cams_from_rig .*pycolmap.Rigid3d"),
+    (lambda: solvers.generalized_relative_pose(  # a single camera: no baseline, no scale
+        RIG_PAIR.x1, RIG_PAIR.camera_index1 * 0, RIG_PAIR.x2, RIG_PAIR.camera_index2 * 0,
+        [pycolmap.Rigid3d()], max_error=1e-3), r"cams_from_rig: .*share one centre"),
+    (lambda: solvers.generalized_relative_pose(  # two cameras turned about one centre
+        RIG_PAIR.x1, RIG_PAIR.camera_index1 % 2, RIG_PAIR.x2, RIG_PAIR.camera_index2 % 2,
+        [pycolmap.Rigid3d(), pycolmap.Rigid3d(pycolmap.Rotation3d([0, 1, 0]), [0, 0, 0])],
+        max_error=1e-3), r"share one centre"),
+    (lambda: solvers.generalized_relative_pose(RIG_PAIR.x1, RIG_PAIR.camera_index1, RIG_PAIR.x2,
+                                               -RIG_PAIR.camera_index2 - 1, RIG, max_error=1e-3),
+     r"camera_index2 out of range"),
+    (lambda: solvers.generalized_relative_pose(RIG_PAIR.x1[:5], RIG_PAIR.camera_index1[:5],
+                                               RIG_PAIR.x2[:5], RIG_PAIR.camera_index2[:5], RIG,
+                                               max_error=1e-3), r"at least 6"),
+    (lambda: solvers.generalized_relative_pose(RIG_PAIR.x1[:16], RIG_PAIR.camera_index1[:16],
+                                               RIG_PAIR.x2[:16], RIG_PAIR.camera_index2[:16], RIG,
+                                               max_error=1e-3, method="seventeenpt"),
+     r"at least 17"),
+    (lambda: solvers.generalized_relative_pose(RIG_PAIR.x1, RIG_PAIR.camera_index1, RIG_PAIR.x2,
+                                               RIG_PAIR.camera_index2, RIG, max_error=1e-3,
+                                               method="ge"), r"unknown method 'ge'"),
+])
+def test_generalized_bad_input_raises_value_error_naming_the_problem(call, message):
+    with pytest.raises(ValueError, match=message):
+        call()

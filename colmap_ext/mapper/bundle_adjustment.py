@@ -62,7 +62,8 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     its other observations in, their poses constant; a longer track is already well
     determined and enters through the observations of `image_ids` alone, held constant
     where they are just one. Without two constant images, two cameras fix the gauge.
-    With `refine_intrinsics`, the intrinsics the options name are refined too.
+    With `refine_intrinsics`, the intrinsics the options name are refined too, but for
+    the cameras in BundleAdjustmentOptions.constant_camera_ids.
     Returns the number of Ceres iterations."""
     ba = options.bundle_adjustment
     requested = set(image_ids)
@@ -73,8 +74,8 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
         config.add_image(image_id)
         if image_id in model.fixed_image_ids:
             config.set_constant_rig_from_world_pose(reconstruction.images[image_id].frame_id)
-    if not refine_intrinsics:
-        for camera_id in reconstruction.cameras:
+    for camera_id in reconstruction.cameras:
+        if not refine_intrinsics or camera_id in ba.constant_camera_ids:
             config.set_constant_cam_intrinsics(camera_id)
 
     if requested >= model.poses.keys():

@@ -8,7 +8,8 @@ import json
 from typing import Any
 
 from colmap_ext.errors import UserError
-from colmap_ext.mapper.flags import FLAGS, help_text, lookup, mapper_options, read_project
+from colmap_ext.mapper.flags import (FLAGS, PATH_ALIASES, help_text, lookup, mapper_options,
+                                     read_project)
 from colmap_ext.mapper.options import MapperOptions, RegistrationOptions
 from colmap_ext.mapper.pipeline import run
 
@@ -26,7 +27,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--input_path", default=None,
                         help="a model (BIN or TXT) to continue: the database's other images "
                              "are registered into it; it is read, never written")
-    parser.add_argument("--image_list_path", default=None,
+    parser.add_argument("--image_list_path", *(f"--{name}" for name in PATH_ALIASES),
+                        dest="image_list_path", default=None,
                         help="text file with one image name per line: map only these")
     parser.add_argument("--output_type", default="BIN", choices=["BIN", "TXT", "bin", "txt"])
     parser.add_argument("--order", choices=["visibility", "sequence"], default="visibility",

@@ -24,6 +24,8 @@ logger = logging.getLogger(__name__)
 
 # Command-line arguments and top-level project-file keys that are paths, not options.
 PATH_KEYS = ("database_path", "image_path", "input_path", "output_path", "image_list_path")
+# COLMAP 4's names of those paths among its mapper options (flag or [Mapper] key).
+PATH_ALIASES = {"Mapper.image_list_path": "image_list_path"}
 
 
 def boolean(text: str) -> bool:
@@ -47,11 +49,27 @@ def _iterations(value: int) -> int | None:
     return None if value <= 0 else value  # COLMAP 4.x: -1 is the solver's default
 
 
+def _camera_ids(path: str) -> tuple[int, ...]:
+    """The camera ids listed in a file, one per line, as COLMAP 4 reads them; "": none."""
+    if not path:
+        return ()
+    try:
+        lines = [line.strip() for line in Path(path).read_text().splitlines()]
+    except (OSError, UnicodeDecodeError) as exc:
+        raise UserError(f"cannot read camera list {path}: "
+                        f"{getattr(exc, 'strerror', None) or exc}") from None
+    try:
+        return tuple(int(line) for line in lines if line)
+    except ValueError:
+        raise UserError(f"camera list {path}: expected one camera id per line") from None
+
+
 @dataclass(frozen=True)
 class Flag:
     name: str  # COLMAP's: "random_seed" (top level) or "Mapper.<key>"
     type: type  # int, float, bool or str
-    pycolmap: str | None  # its attribute in IncrementalPipelineOptions, None: COLMAP 3.8 only
+    pycolmap: str | None  # its attribute in IncrementalPipelineOptions; None: COLMAP 3.8 only,
+    # or a list file whose contents pycolmap takes as a set (constant_cameras)
     field: str | None = None  # the MapperOptions field it sets; None: not applicable
     help: str = ""  # what it does here (applied) or why it does not apply
     default: Any = None  # not applicable: the value that asks for nothing we do not do
@@ -88,6 +106,7 @@ _BA_SCHEDULE = ("global adjustment runs whenever the model grows by --Mapper.ba_
                 "ratio, each adjustment followed by filtering")
 _GPU = "bundle adjustment runs on the CPU (pycolmap's Ceres)"
 _NO_PRIORS = "position priors are not used"
+_TRIVIAL_RIGS = "each image is its own rig, its camera at the rig's origin"
 
 
 def _na(name: str, type_: type, pycolmap: str | None, default: Any, reason: str,
@@ -98,7 +117,8 @@ def _na(name: str, type_: type, pycolmap: str | None, default: Any, reason: str,
 FLAGS: tuple[Flag, ...] = (
     # ---- top level
     Flag("random_seed", int, "random_seed", "seed", "RANSAC seed; -1: unseeded. With a seed, "
-         "two runs give the same model bit for bit", aliases=("seed",), convert=_seed),
+         "two runs give the same model bit for bit", aliases=("Mapper.random_seed", "seed"),
+         convert=_seed),
     _na("log_to_stderr", bool, None, False, "log lines always go to stderr"),
     _na("log_level", int, None, 2, "COLMAP's glog verbosity; this mapper logs progress and "
         "a summary"),
@@ -143,7 +163,12 @@ FLAGS: tuple[Flag, ...] = (
          "bundle_adjustment.refine_extra_params", "refine the extra params in global "
          "adjustments; 0: known and constant, as the method assumes"),
     _na("Mapper.ba_refine_sensor_from_rig", bool, "ba_refine_sensor_from_rig", True,
-        "each image is its own rig: there is no sensor-from-rig pose to refine"),
+        f"{_TRIVIAL_RIGS}: there is no sensor-from-rig pose to refine"),
+    _na("Mapper.constant_rig_list_path", str, None, "",
+        f"{_TRIVIAL_RIGS}: there is no rig to hold constant"),
+    Flag("Mapper.constant_camera_list_path", str, None, "bundle_adjustment.constant_camera_ids",
+         "file of camera ids, one per line, whose intrinsics stay constant when "
+         "--Mapper.ba_refine_* refines the others", convert=_camera_ids),
     Flag("Mapper.ba_min_num_residuals_for_cpu_multi_threading", int,
          "ba_min_num_residuals_for_cpu_multi_threading",
          "bundle_adjustment.min_num_residuals_for_multi_threading",
@@ -229,7 +254,8 @@ FLAGS: tuple[Flag, ...] = (
     _na("Mapper.ba_global_ignore_redundant_points3D", bool,
         "mapper.ba_global_ignore_redundant_points3D", False, "every point is adjusted"),
     _na("Mapper.ba_global_prune_points_min_coverage_gain", float,
-        "mapper.ba_global_prune_points_min_coverage_gain", 0.05, "every point is adjusted"),
+        "mapper.ba_global_prune_points_min_coverage_gain", 0.05, "every point is adjusted",
+        aliases=("Mapper.ba_global_ignore_redundant_points3D_min_coverage_gain",)),
     Flag("Mapper.filter_max_reproj_error", float, "mapper.filter_max_reproj_error",
          "filtering.max_reproj_error_px", "reprojection error (px) within which an "
          "observation is kept"),
@@ -339,11 +365,11 @@ def read_project(path: str | Path) -> tuple[dict[str, Any], dict[str, str]]:
         key, sep, text = (part.strip() for part in line.partition("="))
         if not sep:
             raise UserError(f"{where}: expected key=value, got '{line}'")
-        if section == "" and key in PATH_KEYS:
-            if text:
-                paths[key] = text
-            continue
         name = f"{section}.{key}" if section else key
+        if (section == "" and key in PATH_KEYS) or name in PATH_ALIASES:
+            if text:
+                paths[PATH_ALIASES.get(name, key)] = text
+            continue
         flag = BY_NAME.get(name)
         if flag is None:
             raise UserError(f"{where}: unrecognised option '{name}'")
@@ -388,5 +414,7 @@ def help_text(flag: Flag, base: MapperOptions | None = None) -> str:
     default = flag.effective_default(base)
     if default is None:  # the seed: unseeded, COLMAP 4.x's -1
         default = -1
+    elif isinstance(default, tuple):  # ids read from a list file: none unless `base` has some
+        default = ",".join(map(str, default))
     text = flag.help if flag.field else f"not applicable: {flag.help}"
     return f"{text} (default: {shown(default)})"

@@ -201,6 +201,8 @@ class BundleAdjustmentOptions:
     refine_focal_length: bool = False
     refine_principal_point: bool = False
     refine_extra_params: bool = False
+    # Cameras whose intrinsics stay constant when the others are refined.
+    constant_camera_ids: tuple[int, ...] = ()
 
     @property
     def refines_intrinsics(self) -> bool:
@@ -218,6 +220,9 @@ class BundleAdjustmentOptions:
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
         _require(self.min_num_residuals_for_multi_threading >= 0, self,
                  "min_num_residuals_for_multi_threading", ">= 0")
+        _require(isinstance(self.constant_camera_ids, tuple)
+                 and all(isinstance(i, int) and i >= 1 for i in self.constant_camera_ids),
+                 self, "constant_camera_ids", "a tuple of camera ids >= 1")
 
 
 @dataclass

@@ -1,4 +1,5 @@
-// Calibrated absolute pose: P3P minimal solvers (OpenGV) inside LO-MSAC.
+// Calibrated absolute pose: P3P minimal solvers (OpenGV) inside LO-MSAC, and GP3P for
+// camera rigs.
 #pragma once
 
 #include <vector>
@@ -19,5 +20,18 @@ std::vector<Pose> p3p(const opengv::bearingVectors_t& rays, const opengv::points
 RansacResult<Pose> estimate_absolute_pose(const opengv::bearingVectors_t& rays,
                                           const opengv::points_t& points, P3PMethod method,
                                           const RansacOptions& options);
+
+// All rig_from_world poses consistent with exactly three ray/point pairs, ray i seen by
+// camera camera_index[i] of the rig (OpenGV's GP3P; up to eight).
+std::vector<Pose> gp3p(const opengv::bearingVectors_t& rays, const std::vector<int>& camera_index,
+                       const opengv::points_t& points, const Rig& rig);
+
+// Robust rig_from_world from unit rays of a rig's cameras and world points; max_error is
+// the reprojection error in the observing camera's normalized image units.
+RansacResult<Pose> estimate_generalized_absolute_pose(const opengv::bearingVectors_t& rays,
+                                                      const std::vector<int>& camera_index,
+                                                      const opengv::points_t& points,
+                                                      const Rig& rig,
+                                                      const RansacOptions& options);
 
 }  // namespace colmap_ext

@@ -11,7 +11,10 @@
 #pragma once
 
 #include <Eigen/Core>
+#include <limits>
 #include <opengv/types.hpp>
+#include <utility>
+#include <vector>
 
 namespace colmap_ext {
 
@@ -30,6 +33,29 @@ inline Pose from_opengv(const opengv::transformation_t& T) {
   return inverse(Pose{T.leftCols<3>(), T.col(3)});
 }
 
+// a_from_c = a_from_b * b_from_c.
+inline Pose compose(const Pose& a_from_b, const Pose& b_from_c) {
+  return {a_from_b.R * b_from_c.R, a_from_b.R * b_from_c.t + a_from_b.t};
+}
+
+// A calibrated camera rig (COLMAP's cam_from_rig per camera) and, per observation, the
+// index of the camera that made it. OpenGV's non-central adapters take the inverse,
+// rig_from_cam, as "camera offsets" (centres) and "camera rotations".
+struct Rig {
+  std::vector<Pose> cams_from_rig;
+  opengv::translations_t offsets;  // camera centres in the rig frame
+  opengv::rotations_t rotations;   // rig_from_cam rotations
+
+  explicit Rig(std::vector<Pose> cams) : cams_from_rig(std::move(cams)) {
+    for (const Pose& cam_from_rig : cams_from_rig) {
+      const Pose rig_from_cam = inverse(cam_from_rig);
+      offsets.push_back(rig_from_cam.t);
+      rotations.push_back(rig_from_cam.R);
+    }
+  }
+  int num_cameras() const { return static_cast<int>(cams_from_rig.size()); }
+};
+
 inline Eigen::Matrix3d skew(const Eigen::Vector3d& v) {
   Eigen::Matrix3d S;
   S << 0, -v.z(), v.y(), v.z(), 0, -v.x(), -v.y(), v.x(), 0;
@@ -42,5 +68,15 @@ inline Eigen::Matrix3d essential_from_pose(const Pose& cam2_from_cam1) {
 
 // Rays with z <= kMinRayZ have no normalized image coordinates; they never count as inliers.
 constexpr double kMinRayZ = 1e-9;
+
+// Normalized image coordinates (x/z, y/z) of unit rays; NaN for rays without them.
+inline std::vector<Eigen::Vector2d> normalized_coordinates(const opengv::bearingVectors_t& rays) {
+  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
+  std::vector<Eigen::Vector2d> xy;
+  xy.reserve(rays.size());
+  for (const auto& f : rays)
+    xy.push_back(f.z() > kMinRayZ ? Eigen::Vector2d(f.head<2>() / f.z()) : Eigen::Vector2d(kNaN, kNaN));
+  return xy;
+}
 
 }  // namespace colmap_ext

@@ -34,6 +34,28 @@ FivePointMethod five_point_method(const std::string& name) {
   throw std::invalid_argument("unknown 5-point method '" + name + "' (nister, stewenius)");
 }
 
+GeneralizedRelativeMethod generalized_relative_method(const std::string& name) {
+  if (name == "sixpt") return GeneralizedRelativeMethod::kSixPoint;
+  if (name == "fivept_plus_one") return GeneralizedRelativeMethod::kFivePlusOne;
+  if (name == "seventeenpt") return GeneralizedRelativeMethod::kSeventeenPoint;
+  throw std::invalid_argument("unknown generalized relative pose method '" + name +
+                              "' (sixpt, fivept_plus_one, seventeenpt)");
+}
+
+// Poses from rows of their row-major 3x4 matrices [R | t].
+std::vector<Pose> to_poses(const Eigen::Ref<const RowsX12>& rows) {
+  std::vector<Pose> poses(rows.rows());
+  for (Eigen::Index v = 0; v < rows.rows(); ++v) {
+    Eigen::Map<const Eigen::Matrix<double, 3, 4, Eigen::RowMajor>> T(rows.row(v).data());
+    poses[v] = {T.leftCols<3>(), T.col(3)};
+  }
+  return poses;
+}
+
+std::vector<int> to_indices(const Eigen::Ref<const Eigen::VectorXi>& values) {
+  return std::vector<int>(values.data(), values.data() + values.size());
+}
+
 P3PMethod p3p_method(const std::string& name) {
   if (name == "kneip") return P3PMethod::kKneip;
   if (name == "gao") return P3PMethod::kGao;
@@ -96,6 +118,48 @@ py::dict absolute_pose(const Eigen::Ref<const RowsX3>& rays, const Eigen::Ref<co
   return ransac_dict(result);
 }
 
+py::dict generalized_relative_pose(const Eigen::Ref<const RowsX3>& rays1,
+                                   const Eigen::Ref<const Eigen::VectorXi>& camera_index1,
+                                   const Eigen::Ref<const RowsX3>& rays2,
+                                   const Eigen::Ref<const Eigen::VectorXi>& camera_index2,
+                                   const Eigen::Ref<const RowsX12>& cams_from_rig,
+                                   const std::string& method, double max_error,
+                                   int max_iterations, int min_iterations, double confidence,
+                                   uint64_t seed) {
+  const GeneralizedRelativeMethod m = generalized_relative_method(method);
+  const opengv::bearingVectors_t f1 = to_vectors(rays1), f2 = to_vectors(rays2);
+  const std::vector<int> c1 = to_indices(camera_index1), c2 = to_indices(camera_index2);
+  const Rig rig(to_poses(cams_from_rig));
+  RansacResult<Pose> result;
+  {
+    py::gil_scoped_release release;
+    result = estimate_generalized_relative_pose(
+        f1, c1, f2, c2, rig, m,
+        ransac_options(max_error, max_iterations, min_iterations, confidence, seed));
+  }
+  return ransac_dict(result);
+}
+
+py::dict generalized_absolute_pose(const Eigen::Ref<const RowsX3>& rays,
+                                   const Eigen::Ref<const Eigen::VectorXi>& camera_index,
+                                   const Eigen::Ref<const RowsX3>& points,
+                                   const Eigen::Ref<const RowsX12>& cams_from_rig,
+                                   double max_error, int max_iterations, int min_iterations,
+                                   double confidence, uint64_t seed) {
+  const opengv::bearingVectors_t f = to_vectors(rays);
+  const opengv::points_t X = to_vectors(points);
+  const std::vector<int> cameras = to_indices(camera_index);
+  const Rig rig(to_poses(cams_from_rig));
+  RansacResult<Pose> result;
+  {
+    py::gil_scoped_release release;
+    result = estimate_generalized_absolute_pose(
+        f, cameras, X, rig,
+        ransac_options(max_error, max_iterations, min_iterations, confidence, seed));
+  }
+  return ransac_dict(result);
+}
+
 std::vector<Eigen::Matrix3d> five_point_py(const Eigen::Ref<const RowsX3>& rays1,
                                            const Eigen::Ref<const RowsX3>& rays2,
                                            const std::string& method) {
@@ -123,11 +187,7 @@ py::tuple triangulate_tracks_py(const Eigen::Ref<const RowsX12>& cams_from_world
                                 const Eigen::Ref<const Eigen::VectorXi>& point_index,
                                 const Eigen::Ref<const RowsX3>& rays, int num_points,
                                 double min_angle_deg) {
-  std::vector<Pose> poses(cams_from_world.rows());
-  for (Eigen::Index v = 0; v < cams_from_world.rows(); ++v) {
-    Eigen::Map<const Eigen::Matrix<double, 3, 4, Eigen::RowMajor>> T(cams_from_world.row(v).data());
-    poses[v] = {T.leftCols<3>(), T.col(3)};
-  }
+  const std::vector<Pose> poses = to_poses(cams_from_world);
   std::vector<Observation> observations(rays.rows());
   for (Eigen::Index k = 0; k < rays.rows(); ++k)
     observations[k] = {view_index[k], point_index[k], rays.row(k).transpose()};
@@ -185,6 +245,15 @@ PYBIND11_MODULE(_opengv, m) {
         py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
         py::arg("confidence"), py::arg("seed"));
   m.def("absolute_pose", &absolute_pose, py::arg("rays"), py::arg("points3D"), py::arg("method"),
+        py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
+        py::arg("confidence"), py::arg("seed"));
+  m.def("generalized_relative_pose", &generalized_relative_pose, py::arg("rays1"),
+        py::arg("camera_index1"), py::arg("rays2"), py::arg("camera_index2"),
+        py::arg("cams_from_rig"), py::arg("method"), py::arg("max_error"),
+        py::arg("max_iterations"), py::arg("min_iterations"), py::arg("confidence"),
+        py::arg("seed"));
+  m.def("generalized_absolute_pose", &generalized_absolute_pose, py::arg("rays"),
+        py::arg("camera_index"), py::arg("points3D"), py::arg("cams_from_rig"),
         py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
         py::arg("confidence"), py::arg("seed"));
   m.def("five_point", &five_point_py, py::arg("rays1"), py::arg("rays2"), py::arg("method"));

@@ -7,6 +7,8 @@
 //   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const;
 //   double squared_error(const Model& model, size_t i) const;   // +inf or NaN: never fits
 //   bool refine(const std::vector<int>& inliers, Model* model) const;  // least squares on inliers
+// and may provide, to draw samples other than uniformly:
+//   void draw_sample(std::mt19937_64& rng, std::vector<int>* sample) const;
 #pragma once
 
 #include <algorithm>
@@ -15,6 +17,8 @@
 #include <limits>
 #include <numeric>
 #include <random>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 namespace colmap_ext {
@@ -26,6 +30,14 @@ struct RansacOptions {
   double confidence = 0.9999;
   uint64_t seed = 0;
 };
+
+template <typename Estimator, typename = void>
+struct draws_own_samples : std::false_type {};
+
+template <typename Estimator>
+struct draws_own_samples<Estimator, std::void_t<decltype(std::declval<const Estimator&>().draw_sample(
+                                         std::declval<std::mt19937_64&>(),
+                                         std::declval<std::vector<int>*>()))>> : std::true_type {};
 
 template <typename Model>
 struct RansacResult {
@@ -96,11 +108,15 @@ RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
 
   int iteration = 0;
   for (; iteration < max_iterations; ++iteration) {
-    // Partial Fisher-Yates: kSampleSize distinct indices.
-    for (int k = 0; k < kSampleSize; ++k) {
-      std::uniform_int_distribution<int> pick(k, num_data - 1);
-      std::swap(indices[k], indices[pick(rng)]);
-      sample[k] = indices[k];
+    if constexpr (draws_own_samples<Estimator>::value) {
+      estimator.draw_sample(rng, &sample);
+    } else {
+      // Partial Fisher-Yates: kSampleSize distinct indices.
+      for (int k = 0; k < kSampleSize; ++k) {
+        std::uniform_int_distribution<int> pick(k, num_data - 1);
+        std::swap(indices[k], indices[pick(rng)]);
+        sample[k] = indices[k];
+      }
     }
     models.clear();
     estimator.minimal_solve(sample, &models);

@@ -2,6 +2,12 @@
 
 #include <Eigen/Dense>
 #include <Eigen/SVD>
+#include <algorithm>
+#include <array>
+#include <random>
+#include <type_traits>
+#include <opengv/relative_pose/NoncentralRelativeAdapter.hpp>
+#include <opengv/relative_pose/methods.hpp>
 #include <opengv/relative_pose/modules/main.hpp>
 
 #include "refinement.hpp"
@@ -10,6 +16,7 @@ namespace colmap_ext {
 namespace {
 
 using opengv::bearingVectors_t;
+using opengv::relative_pose::NoncentralRelativeAdapter;
 
 // The null space of the five epipolar constraints f1^T E f2 = 0 (OpenGV's E, row-major
 // in 9-vectors): the input of OpenGV's 5-point solvers. A fixed-size QR here instead of
@@ -109,9 +116,41 @@ inline SampsonTerms sampson_terms(const Eigen::Matrix3d& E, const Eigen::Vector2
   return s;
 }
 
+// E = [t]x R has two rotations, Ra and Rb, and the unit translation t up to its sign.
+struct EssentialDecomposition {
+  Eigen::Matrix3d Ra, Rb;
+  Eigen::Vector3d t;
+};
+
+EssentialDecomposition decompose(const Eigen::Matrix3d& E) {
+  Eigen::JacobiSVD<Eigen::Matrix3d> svd(E, Eigen::ComputeFullU | Eigen::ComputeFullV);
+  Eigen::Matrix3d U = svd.matrixU();
+  Eigen::Matrix3d V = svd.matrixV();
+  if (U.determinant() < 0) U = -U;
+  if (V.determinant() < 0) V = -V;
+  Eigen::Matrix3d W;
+  W << 0, 1, 0, -1, 0, 0, 0, 0, 1;
+  return {U * W * V.transpose(), U * W.transpose() * V.transpose(), U.col(2).normalized()};
+}
+
 // Least squares over the inliers' Sampson errors (see refinement.hpp), in the rotation
 // (exp(w) R) and the direction of translation (t + B u, renormalized, with B a basis
 // of the plane orthogonal to t): 5 degrees of freedom.
+// The Sampson error r of one pair and its gradient G = dr/dE over E's entries.
+double sampson_residual(const Eigen::Matrix3d& E, const Eigen::Vector2d& x1,
+                        const Eigen::Vector2d& x2, Eigen::Matrix3d* G) {
+  const SampsonTerms s = sampson_terms(E, x1, x2);
+  const double inv_sqrt_d = 1.0 / std::sqrt(s.d);
+  const double r = s.c * inv_sqrt_d;
+  // dr/dE = x2 x1^T / sqrt(d) - (r / d) (dd/dE) / 2
+  const Eigen::Vector3d h1 = x1.homogeneous(), h2 = x2.homogeneous();
+  *G = inv_sqrt_d * h2 * h1.transpose();
+  const double k = r * inv_sqrt_d * inv_sqrt_d;
+  G->topRows<2>() -= k * s.Ex1.head<2>() * h1.transpose();
+  G->leftCols<2>() -= k * h2 * s.Etx2.head<2>().transpose();
+  return r;
+}
+
 class SampsonRefinement {
  public:
   using Vec = Eigen::Matrix<double, 5, 1>;
@@ -132,15 +171,8 @@ class SampsonRefinement {
     Jtr->setZero();
     double cost = 0.0;
     for (int i : inliers_) {
-      const Eigen::Vector3d x1 = x1_[i].homogeneous(), x2 = x2_[i].homogeneous();
-      const SampsonTerms s = sampson_terms(E, x1_[i], x2_[i]);
-      const double inv_sqrt_d = 1.0 / std::sqrt(s.d);
-      const double r = s.c * inv_sqrt_d;
-      // dr/dE = x2 x1^T / sqrt(d) - (r / d) (dd/dE) / 2
-      Eigen::Matrix3d G = inv_sqrt_d * x2 * x1.transpose();
-      const double k = r * inv_sqrt_d * inv_sqrt_d;
-      G.topRows<2>() -= k * s.Ex1.head<2>() * x1.transpose();
-      G.leftCols<2>() -= k * x2 * s.Etx2.head<2>().transpose();
+      Eigen::Matrix3d G;
+      const double r = sampson_residual(E, x1_[i], x2_[i], &G);
       Vec J;
       for (int p = 0; p < 5; ++p) J[p] = G.cwiseProduct(dE[p]).sum();
       *JtJ += J * J.transpose();
@@ -244,6 +276,284 @@ class RelativePoseEstimator {
   std::vector<Eigen::Vector2d> x1_, x2_;  // normalized image points (x/z, y/z); NaN if none
 };
 
+// cam2_from_cam1 for camera c1 of a rig in frame 1 and camera c2 in frame 2.
+Pose camera_pair_pose(const Rig& rig, const Pose& rig2_from_rig1, int c1, int c2) {
+  return compose(compose(rig.cams_from_rig[c2], rig2_from_rig1), inverse(rig.cams_from_rig[c1]));
+}
+
+// The essential matrix (COLMAP's) of every camera pair of a rig, given rig2_from_rig1:
+// index c1 * K + c2 for a ray of camera c1 in the first frame and of c2 in the second.
+std::vector<Eigen::Matrix3d> pair_essentials(const Rig& rig, const Pose& rig2_from_rig1) {
+  const int K = rig.num_cameras();
+  std::vector<Eigen::Matrix3d> essentials(K * K);
+  for (int c1 = 0; c1 < K; ++c1)
+    for (int c2 = 0; c2 < K; ++c2)
+      essentials[c1 * K + c2] = essential_from_pose(camera_pair_pose(rig, rig2_from_rig1, c1, c2));
+  return essentials;
+}
+
+// Least squares over the inliers' Sampson errors, each in its camera pair (see
+// refinement.hpp), in the rotation (exp(w) R) and the translation (t + u) of
+// rig2_from_rig1: 6 degrees of freedom, the rig's baseline fixing the scale.
+class GeneralizedSampsonRefinement {
+ public:
+  using Vec = Eigen::Matrix<double, 6, 1>;
+  using Mat = Eigen::Matrix<double, 6, 6>;
+
+  GeneralizedSampsonRefinement(const std::vector<Eigen::Vector2d>& x1,
+                               const std::vector<Eigen::Vector2d>& x2,
+                               const std::vector<int>& pair, const Rig& rig,
+                               const std::vector<int>& inliers, Pose* rig2_from_rig1)
+      : x1_(x1), x2_(x2), pair_(pair), rig_(rig), inliers_(inliers), pose_(*rig2_from_rig1) {}
+
+  double linearize(Mat* JtJ, Vec* Jtr) const {
+    // Per camera pair: E = [t_p]x R_p with R_p = R2 R R1^T and t_p = R2 (t + R o1) + t2
+    // (cam_from_rig = (R1, t1), (R2, t2); o1 camera 1's centre in the rig).
+    const int K = rig_.num_cameras();
+    std::vector<Eigen::Matrix3d> E(K * K);
+    std::vector<std::array<Eigen::Matrix3d, 6>> dE(K * K);
+    for (int c1 = 0; c1 < K; ++c1) {
+      const Pose& cam1_from_rig = rig_.cams_from_rig[c1];
+      const Eigen::Vector3d R_o1 = pose_.R * rig_.offsets[c1];
+      for (int c2 = 0; c2 < K; ++c2) {
+        const Pose& cam2_from_rig = rig_.cams_from_rig[c2];
+        const Pose p = camera_pair_pose(rig_, pose_, c1, c2);
+        const int k = c1 * K + c2;
+        E[k] = essential_from_pose(p);
+        for (int j = 0; j < 3; ++j) {
+          const Eigen::Vector3d axis = Eigen::Vector3d::Unit(j);
+          const Eigen::Matrix3d dR = cam2_from_rig.R * skew(axis) * pose_.R * cam1_from_rig.R.transpose();
+          const Eigen::Vector3d dt = cam2_from_rig.R * axis.cross(R_o1);
+          dE[k][j] = skew(dt) * p.R + skew(p.t) * dR;
+          dE[k][3 + j] = skew(cam2_from_rig.R.col(j)) * p.R;
+        }
+      }
+    }
+    JtJ->setZero();
+    Jtr->setZero();
+    double cost = 0.0;
+    for (int i : inliers_) {
+      Eigen::Matrix3d G;
+      const double r = sampson_residual(E[pair_[i]], x1_[i], x2_[i], &G);
+      Vec J;
+      for (int p = 0; p < 6; ++p) J[p] = G.cwiseProduct(dE[pair_[i]][p]).sum();
+      *JtJ += J * J.transpose();
+      *Jtr += r * J;
+      cost += r * r;
+    }
+    return cost;
+  }
+
+  double cost(const Vec& delta) const {
+    const std::vector<Eigen::Matrix3d> E = pair_essentials(rig_, moved(delta));
+    double cost = 0.0;
+    for (int i : inliers_) {
+      const SampsonTerms s = sampson_terms(E[pair_[i]], x1_[i], x2_[i]);
+      cost += s.c * s.c / s.d;
+    }
+    return cost;
+  }
+
+  void commit(const Vec& delta) { pose_ = moved(delta); }
+
+ private:
+  Pose moved(const Vec& delta) const {
+    return {rotate_by(delta.head<3>(), pose_.R), pose_.t + delta.tail<3>()};
+  }
+
+  const std::vector<Eigen::Vector2d>& x1_;
+  const std::vector<Eigen::Vector2d>& x2_;
+  const std::vector<int>& pair_;
+  const Rig& rig_;
+  const std::vector<int>& inliers_;
+  Pose& pose_;
+};
+
+// rig2_from_rig1 with the essential matrices of its camera pairs (pair_essentials).
+struct GeneralizedRelativeModel {
+  Pose pose;
+  std::vector<Eigen::Matrix3d> essentials;
+};
+
+// Generalized relative pose (see GeneralizedRelativeMethod) inside LO-MSAC.
+template <GeneralizedRelativeMethod kMethod>
+class GeneralizedRelativePoseEstimator {
+ public:
+  using Model = GeneralizedRelativeModel;
+  static constexpr int kSampleSize =
+      kMethod == GeneralizedRelativeMethod::kSeventeenPoint ? 17 : 6;
+
+  GeneralizedRelativePoseEstimator(const bearingVectors_t& rays1, const std::vector<int>& cameras1,
+                                   const bearingVectors_t& rays2, const std::vector<int>& cameras2,
+                                   const Rig& rig)
+      : rays1_(rays1), cameras1_(cameras1), rays2_(rays2), cameras2_(cameras2), rig_(rig),
+        adapter_(rays1, rays2, cameras1, cameras2, rig.offsets, rig.rotations),
+        x1_(normalized_coordinates(rays1)), x2_(normalized_coordinates(rays2)) {
+    members_of_pair_.resize(rig.num_cameras() * rig.num_cameras());
+    for (size_t i = 0; i < rays1.size(); ++i) {
+      pair_.push_back(cameras1[i] * rig.num_cameras() + cameras2[i]);
+      members_of_pair_[pair_.back()].push_back(static_cast<int>(i));
+      origin1_.push_back(rig.offsets[cameras1[i]]);
+      origin2_.push_back(rig.offsets[cameras2[i]]);
+      direction1_.push_back(rig.rotations[cameras1[i]] * rays1[i]);
+      direction2_.push_back(rig.rotations[cameras2[i]] * rays2[i]);
+    }
+  }
+
+  size_t num_data() const { return pair_.size(); }
+
+  // 5+1: five pairs of one camera pair (the camera pair of a pair drawn at random) and
+  // one of another; uniform where the data has no such sample.
+  template <GeneralizedRelativeMethod M = kMethod,
+            std::enable_if_t<M == GeneralizedRelativeMethod::kFivePlusOne, int> = 0>
+  void draw_sample(std::mt19937_64& rng, std::vector<int>* sample) const {
+    const int n = static_cast<int>(num_data());
+    std::uniform_int_distribution<int> any(0, n - 1);
+    const int anchor = any(rng);
+    const std::vector<int>& same = members_of_pair_[pair_[anchor]];
+    const int num_same = static_cast<int>(same.size());
+    const auto distinct = [&](int k, const auto& draw) {  // draw() until new to the sample
+      do (*sample)[k] = draw();
+      while (std::find(sample->begin(), sample->begin() + k, (*sample)[k]) != sample->begin() + k);
+    };
+    if (num_same < 5 || num_same == n) {
+      for (int k = 0; k < kSampleSize; ++k) distinct(k, [&] { return any(rng); });
+      return;
+    }
+    std::uniform_int_distribution<int> member(0, num_same - 1);
+    (*sample)[0] = anchor;
+    for (int k = 1; k < 5; ++k) distinct(k, [&] { return same[member(rng)]; });
+    int other;
+    do other = any(rng);
+    while (pair_[other] == pair_[anchor]);
+    (*sample)[5] = other;
+  }
+
+  // Samples from a single camera pair are skipped: one pair's essential matrix leaves the
+  // translation's scale open (and OpenGV's 6-point solver takes 100x longer on them).
+  void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const {
+    const auto same_pair = [&](int i) { return pair_[i] == pair_[sample[0]]; };
+    if (std::all_of(sample.begin(), sample.end(), same_pair)) return;
+    if constexpr (kMethod == GeneralizedRelativeMethod::kSixPoint) {
+      // OpenGV's rotations map frame 2 into frame 1; each gets its translation. OpenGV
+      // returns all 64 roots, complex ones by their real parts; scoring tells them apart.
+      for (const auto& R12 : opengv::relative_pose::sixpt(adapter_, sample)) {
+        if (!R12.allFinite()) continue;
+        const Eigen::Matrix3d R = R12.transpose();
+        const Pose rig2_from_rig1{R, translation_given_rotation(R, sample)};
+        add_model({rig2_from_rig1, pair_essentials(rig_, rig2_from_rig1)}, sample, models);
+      }
+    } else if constexpr (kMethod == GeneralizedRelativeMethod::kFivePlusOne) {
+      five_plus_one(sample, models);
+    } else {
+      const opengv::transformation_t T = opengv::relative_pose::seventeenpt(adapter_, sample);
+      if (!T.allFinite()) return;
+      const Pose rig2_from_rig1 = from_opengv(T);
+      add_model({rig2_from_rig1, pair_essentials(rig_, rig2_from_rig1)}, sample, models);
+    }
+  }
+
+  double squared_error(const Model& model, size_t i) const {
+    const SampsonTerms s = sampson_terms(model.essentials[pair_[i]], x1_[i], x2_[i]);
+    return s.c * s.c / s.d;
+  }
+
+  bool refine(const std::vector<int>& inliers, Model* model) const {
+    GeneralizedSampsonRefinement problem(x1_, x2_, pair_, rig_, inliers, &model->pose);
+    if (!levenberg_marquardt<6>(problem)) return false;
+    model->essentials = pair_essentials(rig_, model->pose);
+    return true;
+  }
+
+ private:
+  // Keeps a solution that puts every sample pair in front of its cameras. Sampson errors
+  // cannot tell a solution from its twisted pair (turned 180 deg about the translation),
+  // which the solvers also return, and which fits as well where the baseline dwarfs
+  // the rig.
+  void add_model(const Model& model, const std::vector<int>& sample,
+                 std::vector<Model>* models) const {
+    for (int i : sample) {
+      const Pose cam2_from_cam1 = camera_pair_pose(rig_, model.pose, cameras1_[i], cameras2_[i]);
+      if (!in_front(cam2_from_cam1, rays1_[i], rays2_[i])) return;
+    }
+    models->push_back(model);
+  }
+
+  // The 5-point solver (OpenGV's Stewenius) on the first five pairs, all of cameras
+  // (c1, c2), gives R and the direction of t of cam2_from_cam1 = (R_p, l t_p); the
+  // sixth pair, of other cameras, gives the scale l: rig2_from_rig1 = (R, a + l b) with
+  // R = R2^T R_p R1, a = R2^T (R_p t1 - t2), b = R2^T t_p, and its rays must meet.
+  void five_plus_one(const std::vector<int>& sample, std::vector<Model>* models) const {
+    const auto first_pair = [&](int i) { return pair_[i] == pair_[sample[0]]; };
+    if (!std::all_of(sample.begin(), sample.begin() + 5, first_pair) || first_pair(sample[5]))
+      return;
+    const Pose& cam1_from_rig = rig_.cams_from_rig[cameras1_[sample[0]]];
+    const Pose& cam2_from_rig = rig_.cams_from_rig[cameras2_[sample[0]]];
+    std::vector<Eigen::Matrix3d> essentials;
+    five_point_from_null_space(epipolar_null_space(rays1_, rays2_, sample.data()),
+                               FivePointMethod::kStewenius, &essentials);
+    const int j = sample[5];
+    for (const Eigen::Matrix3d& E : essentials) {
+      const EssentialDecomposition d = decompose(E);
+      for (const Eigen::Matrix3d& R_pair : {d.Ra, d.Rb}) {
+        const Eigen::Matrix3d R = cam2_from_rig.R.transpose() * R_pair * cam1_from_rig.R;
+        const Eigen::Vector3d a =
+            cam2_from_rig.R.transpose() * (R_pair * cam1_from_rig.t - cam2_from_rig.t);
+        const Eigen::Vector3d b = cam2_from_rig.R.transpose() * d.t;
+        const Eigen::Vector3d n = (R * direction1_[j]).cross(direction2_[j]);
+        const double denominator = n.dot(b);
+        if (std::abs(denominator) < 1e-12) continue;
+        const double scale = (n.dot(origin2_[j] - R * origin1_[j]) - n.dot(a)) / denominator;
+        const Pose rig2_from_rig1{R, a + scale * b};
+        add_model({rig2_from_rig1, pair_essentials(rig_, rig2_from_rig1)}, sample, models);
+      }
+    }
+  }
+
+  // The least-squares t of rig2_from_rig1 = (R, t) that makes each sample's two rays
+  // meet: (R d1 x d2) . t = (R d1 x d2) . (o2 - R o1) for rays o + l d in the rig frames.
+  Eigen::Vector3d translation_given_rotation(const Eigen::Matrix3d& R,
+                                             const std::vector<int>& sample) const {
+    Eigen::Matrix3d AtA = Eigen::Matrix3d::Zero();
+    Eigen::Vector3d Atb = Eigen::Vector3d::Zero();
+    for (int i : sample) {
+      const Eigen::Vector3d n = (R * direction1_[i]).cross(direction2_[i]);
+      AtA += n * n.transpose();
+      Atb += n * n.dot(origin2_[i] - R * origin1_[i]);
+    }
+    return AtA.ldlt().solve(Atb);
+  }
+
+  const bearingVectors_t& rays1_;
+  const std::vector<int>& cameras1_;
+  const bearingVectors_t& rays2_;
+  const std::vector<int>& cameras2_;
+  const Rig& rig_;
+  const NoncentralRelativeAdapter adapter_;
+  std::vector<Eigen::Vector2d> x1_, x2_;  // normalized image points; NaN if none
+  std::vector<int> pair_;                 // camera pair of each correspondence (pair_essentials)
+  std::vector<std::vector<int>> members_of_pair_;  // correspondences by camera pair
+  opengv::translations_t origin1_, origin2_;     // camera centres in the rig frames
+  opengv::bearingVectors_t direction1_, direction2_;  // rays in the rig frames
+};
+
+template <GeneralizedRelativeMethod kMethod>
+RansacResult<Pose> run_generalized_relative(const bearingVectors_t& rays1,
+                                            const std::vector<int>& cameras1,
+                                            const bearingVectors_t& rays2,
+                                            const std::vector<int>& cameras2, const Rig& rig,
+                                            const RansacOptions& options) {
+  const GeneralizedRelativePoseEstimator<kMethod> estimator(rays1, cameras1, rays2, cameras2, rig);
+  RansacResult<GeneralizedRelativeModel> found = ransac(estimator, options);
+  RansacResult<Pose> result;
+  result.success = found.success;
+  result.model = found.model.pose;
+  result.inlier_mask = std::move(found.inlier_mask);
+  result.num_inliers = found.num_inliers;
+  result.num_iterations = found.num_iterations;
+  return result;
+}
+
 }  // namespace
 
 std::vector<Eigen::Matrix3d> five_point(const bearingVectors_t& rays1,
@@ -256,17 +566,8 @@ std::vector<Eigen::Matrix3d> five_point(const bearingVectors_t& rays1,
 
 Pose decompose_essential(const Eigen::Matrix3d& E, const bearingVectors_t& rays1,
                          const bearingVectors_t& rays2, const std::vector<int>& indices) {
-  Eigen::JacobiSVD<Eigen::Matrix3d> svd(E, Eigen::ComputeFullU | Eigen::ComputeFullV);
-  Eigen::Matrix3d U = svd.matrixU();
-  Eigen::Matrix3d V = svd.matrixV();
-  if (U.determinant() < 0) U = -U;
-  if (V.determinant() < 0) V = -V;
-  Eigen::Matrix3d W;
-  W << 0, 1, 0, -1, 0, 0, 0, 0, 1;
-  const Eigen::Matrix3d Ra = U * W * V.transpose();
-  const Eigen::Matrix3d Rb = U * W.transpose() * V.transpose();
-  const Eigen::Vector3d t = U.col(2).normalized();
-  const Pose candidates[4] = {{Ra, t}, {Ra, -t}, {Rb, t}, {Rb, -t}};
+  const EssentialDecomposition d = decompose(E);
+  const Pose candidates[4] = {{d.Ra, d.t}, {d.Ra, -d.t}, {d.Rb, d.t}, {d.Rb, -d.t}};
   Pose best;
   int best_count = -1;
   for (const Pose& candidate : candidates) {
@@ -303,6 +604,26 @@ RelativePoseResult estimate_relative_pose(const bearingVectors_t& rays1,
   result.ransac.model = found.model.pose;
   result.E = essential_from_pose(found.model.pose);
   return result;
+}
+
+RansacResult<Pose> estimate_generalized_relative_pose(const bearingVectors_t& rays1,
+                                                      const std::vector<int>& cameras1,
+                                                      const bearingVectors_t& rays2,
+                                                      const std::vector<int>& cameras2,
+                                                      const Rig& rig,
+                                                      GeneralizedRelativeMethod method,
+                                                      const RansacOptions& options) {
+  switch (method) {
+    case GeneralizedRelativeMethod::kSixPoint:
+      return run_generalized_relative<GeneralizedRelativeMethod::kSixPoint>(
+          rays1, cameras1, rays2, cameras2, rig, options);
+    case GeneralizedRelativeMethod::kFivePlusOne:
+      return run_generalized_relative<GeneralizedRelativeMethod::kFivePlusOne>(
+          rays1, cameras1, rays2, cameras2, rig, options);
+    default:
+      return run_generalized_relative<GeneralizedRelativeMethod::kSeventeenPoint>(
+          rays1, cameras1, rays2, cameras2, rig, options);
+  }
 }
 
 }  // namespace colmap_ext

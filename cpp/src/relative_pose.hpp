@@ -1,4 +1,5 @@
-// Calibrated relative pose: 5-point minimal solvers (OpenGV) inside LO-MSAC.
+// Calibrated relative pose: 5-point minimal solvers (OpenGV) inside LO-MSAC, and the
+// generalized (6-point, 5+1-point, 17-point) solvers for camera rigs.
 #pragma once
 
 #include <vector>
@@ -30,5 +31,22 @@ struct RelativePoseResult {
 RelativePoseResult estimate_relative_pose(const opengv::bearingVectors_t& rays1,
                                           const opengv::bearingVectors_t& rays2,
                                           FivePointMethod method, const RansacOptions& options);
+
+// kSixPoint: OpenGV's 6-point solver (Stewenius). kFivePlusOne: OpenGV's 5-point solver
+// on five pairs of one camera pair, the scale from a sixth of another (samples drawn so).
+// kSeventeenPoint: OpenGV's linear 17-point solver (Li).
+enum class GeneralizedRelativeMethod { kSixPoint, kFivePlusOne, kSeventeenPoint };
+
+// Robust rig2_from_rig1 between two frames of one rig (metric translation: the rig's
+// baseline fixes the scale) from ray pairs, ray i of camera cameras1[i] in frame 1 and
+// of cameras2[i] in frame 2; max_error is the Sampson error of each pair in its cameras'
+// normalized image units.
+RansacResult<Pose> estimate_generalized_relative_pose(const opengv::bearingVectors_t& rays1,
+                                                      const std::vector<int>& cameras1,
+                                                      const opengv::bearingVectors_t& rays2,
+                                                      const std::vector<int>& cameras2,
+                                                      const Rig& rig,
+                                                      GeneralizedRelativeMethod method,
+                                                      const RansacOptions& options);
 
 }  // namespace colmap_ext
