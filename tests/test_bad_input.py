@@ -936,8 +936,7 @@ def _(env):
 
 @case("demo_already_there", "already holds a demo; pass --overwrite", command="demo")
 def _(env):
-    (env.out / "workspace" / "sparse" / "0").mkdir(parents=True)
-    (env.out / "workspace" / "sparse" / "0" / "images.bin").write_bytes(b"an earlier demo")
+    shutil.copytree(env.assets.model, env.out / "workspace" / "sparse")  # an earlier demo's
     env.protected.append(env.out)
     return ["demo", "--output_path", str(env.out)]
 
