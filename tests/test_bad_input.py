@@ -1249,29 +1249,31 @@ def _(env):
     return _compare(env)
 
 
-def _compare_over_a_comparison(env) -> list[str]:
-    """compare --overwrite on the big scene over the output of an earlier comparison."""
+def _compare_over_a_comparison(env, database: Path, images: Path) -> list[str]:
+    """compare --overwrite over the output of an earlier comparison."""
     for mapper in ("ours", "colmap_incremental"):
         shutil.copytree(env.assets.model, env.out / mapper)
     (env.out / "report.json").write_text('{"an earlier": "comparison"}\n')
     (env.out / "report.md").write_text("# an earlier comparison\n")
     env.protected.append(env.out)
-    database, images, _ = env.assets.big
     return ["compare", "--database_path", str(env.copy(database)), "--image_path",
-            str(env.copy(images)), "--output_path", str(env.out), "--overwrite", "--seed", "0"]
+            str(env.copy(images, "images")), "--output_path", str(env.out), "--overwrite",
+            "--seed", "0"]
 
 
 # Issue 33, defect 4: an interrupt could leave ours/0 of the new run beside the old report.
-@case("compare_ctrl_c_while_mapping", "interrupted by SIGINT", code=130, command="compare",
-      run=interrupted("registered:"))
+@case("compare_ctrl_c_in_the_second_mapper", "interrupted by SIGINT", code=130,
+      command="compare", run=interrupted("[2/3] colmap_incremental", delay=0.0))
 def _(env):
-    return _compare_over_a_comparison(env)
+    """On the rendered ring's database: COLMAP's mappers register images from it."""
+    return _compare_over_a_comparison(env, env.assets.workspace / "database.db", env.assets.ring)
 
 
-@case("compare_sigterm_while_reading", "interrupted by SIGTERM", code=143, command="compare",
-      run=interrupted("[1/3] ours", signal.SIGTERM, delay=0.0))
+@case("compare_sigterm_in_our_mapper", "interrupted by SIGTERM", code=143, command="compare",
+      run=interrupted("registered:", signal.SIGTERM))
 def _(env):
-    return _compare_over_a_comparison(env)
+    database, images, _ = env.assets.big
+    return _compare_over_a_comparison(env, database, images)
 
 
 # ---- Ray and hierarchical_mapper
