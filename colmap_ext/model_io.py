@@ -120,10 +120,15 @@ def replacing(output_path: str | Path, layout: OutputLayout, overwrite: bool) ->
             try:
                 (staging / "new").mkdir()
                 yield staging / "new"
-                with _signals_deferred():
+            except BaseException:
+                with _signals_deferred():  # a second Ctrl-C does not stop the clean-up
+                    shutil.rmtree(staging, ignore_errors=True)
+                raise
+            with _signals_deferred():
+                try:
                     _swap_in(staging / "new", output_path, previous, staging / "old")
-            finally:
-                shutil.rmtree(staging, ignore_errors=True)
+                finally:
+                    shutil.rmtree(staging, ignore_errors=True)
     except BaseException:
         if created:
             with contextlib.suppress(OSError):

@@ -966,6 +966,19 @@ def _(env):
     return env.mapper(env.small_db(), None, None, "--overwrite")
 
 
+def _lock_released(env, result):
+    assert sorted(p.name for p in env.out.iterdir()) == ["0", "mapper_summary.json"], \
+        "the lock file was not removed"
+
+
+@case("stale_lock_is_taken_over", "Registered 6 images", code=0, after=_lock_released)
+def _(env):
+    """A lock file left by a killed run (its pid long gone) does not keep the folder locked."""
+    env.out.mkdir()
+    (env.out / ".colmap-ext.lock").write_text("999999999\n")
+    return env.mapper(env.small_db(), None, None, "--seed", "0")
+
+
 def _nothing_in_the_working_folder(env, result):
     written = {p.name for p in env.root.iterdir()} - {"home", "in", "out", "tmp"}
     assert not written, f"the run wrote {written} into its working folder"
