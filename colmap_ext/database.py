@@ -200,7 +200,8 @@ def _check_blobs(conn: sqlite3.Connection, path: Path, has_geometries: bool) -> 
             pair = "images {} and {}".format(*pycolmap.pair_id_to_image_pair(pair_id))
             if rows and (cols != 2 or size != rows * 8):
                 raise UserError(f"{table} of {pair} in {path} hold {size} bytes for {rows} x "
-                                f"{cols}; expected {rows} rows of 2 keypoint indices (4 bytes each)")
+                                f"{cols}; expected {rows} rows of 2 keypoint indices "
+                                "(4 bytes each)")
             for (blob, expected), length in zip(_GEOMETRY_BLOB_BYTES.items(), blobs):
                 if length and length != expected:
                     raise UserError(f"two_view_geometries of {pair} in {path}: {blob} holds "

@@ -8,12 +8,17 @@ ground truth beside them; then `reconstruct` and `evaluate` on it.
 from __future__ import annotations
 
 import argparse
+import time
+from functools import partial
 from pathlib import Path
 
 from colmap_ext import evaluate, reconstruct
 from colmap_ext.errors import UserError
+from colmap_ext.features import list_images
+from colmap_ext.ground_truth import read_ground_truth, read_model
 from colmap_ext.mapper.flags import random_seed
-from colmap_ext.model_io import OutputLayout, holds_only, is_file, is_model_folder, replacing
+from colmap_ext.model_io import (OutputLayout, holds_only, is_file, is_model_folder, moved,
+                                 replacing)
 from colmap_ext.synthetic.render import render_images, write_ground_truth
 from colmap_ext.synthetic.scene import ring_scene
 
@@ -42,20 +47,25 @@ def main(output_path: str, num_images: int = 24, seed: int = 0, overwrite: bool 
     if not 3 <= num_images <= MAX_NUM_IMAGES:
         raise UserError(f"--num_images must be at least 3 and at most {MAX_NUM_IMAGES}, "
                         f"got {num_images}")
+    start = time.perf_counter()
+    root = Path(output_path)
     with replacing(output_path, DEMO_OUTPUT, overwrite) as new_root:
-        images, truth, workspace = new_root / "images", new_root / "ground_truth", new_root / "workspace"
+        images, truth = new_root / "images", new_root / "ground_truth"
+        workspace = new_root / "workspace"
         scene = ring_scene(num_images=num_images, seed=seed)
-        print(f"Rendering {num_images} views of the demo scene ...")
+        print(f"Rendering {num_images} views of the demo scene to {root / 'images'}/ ...")
         render_images(scene, images, seed=seed)
         write_ground_truth(scene, truth)
-        camera = scene.camera
-        reconstruct.main(image_path=str(images), workspace_path=str(workspace),
-                         camera_model=camera.model.name,
-                         camera_params=",".join(f"{p:.17g}" for p in camera.params), seed=seed)
+        workspace.mkdir()
+        summary = reconstruct.run_stages(
+            images, workspace, partial(moved, new=new_root, final=root), scene.camera.model.name,
+            list(scene.camera.params), list_images(images), seed, start)
+        print(reconstruct.format_summary(summary, root / "workspace"))
         print()
-        report = evaluate.main(model_path=workspace / "sparse" / "0", ground_truth=truth,
-                               output=new_root / "report.json", plot=new_root / "errors.png")
-    root = Path(output_path)
+        report = evaluate.evaluate_and_write(
+            read_model(workspace / "sparse" / "0"), read_ground_truth(truth),
+            new_root / "report.json", new_root / "errors.png",
+            label=str(root / "workspace" / "sparse" / "0"))
     print(f"\nModel: {root / 'workspace' / 'sparse' / '0'}   report: {root / 'report.json'}   "
           f"plots: {root / 'errors.png'}, {evaluate.scene_plot_path(root / 'errors.png')}")
     return report

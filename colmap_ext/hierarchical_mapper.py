@@ -544,7 +544,8 @@ def main(database_path: str, image_path: str, output_path: str,
         timer = StageTimer()
         with timer("read database"):
             db = read_database(database_path)
-        missing = [image.name for image in db.images.values() if not (images / image.name).is_file()]
+        missing = [image.name for image in db.images.values()
+                   if not (images / image.name).is_file()]
         if missing:
             raise UserError(f"{len(missing)} images of the database are not under {images}: "
                             f"{', '.join(missing[:3])}" + (" ..." if len(missing) > 3 else ""))

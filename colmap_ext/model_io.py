@@ -33,9 +33,11 @@ OUTPUT_TYPES = ("BIN", "TXT")
 # The lock file of an output folder being written, and the prefix of our temporary folders.
 LOCK_NAME = ".colmap-ext.lock"
 TEMPORARY_PREFIX = ".colmap-ext-"
-# The files of a COLMAP model folder (pycolmap 4 writes rigs and frames; COLMAP's mapper, a project.ini).
-MODEL_FILES = frozenset({f"{name}.{ext}" for name in ("cameras", "images", "points3D", "rigs", "frames")
-                         for ext in ("bin", "txt")} | {"project.ini"})
+# The files of a COLMAP model folder (pycolmap 4 writes rigs and frames; COLMAP's mapper,
+# a project.ini).
+MODEL_FILES = frozenset({f"{name}.{ext}" for ext in ("bin", "txt")
+                         for name in ("cameras", "images", "points3D", "rigs", "frames")}
+                        | {"project.ini"})
 
 
 def is_model_folder(path: Path) -> bool:
@@ -43,7 +45,8 @@ def is_model_folder(path: Path) -> bool:
     if not path.is_dir() or path.is_symlink():
         return False
     names = {entry.name for entry in path.iterdir() if entry.is_file() and not entry.is_symlink()}
-    complete = any({f"cameras.{e}", f"images.{e}", f"points3D.{e}"} <= names for e in ("bin", "txt"))
+    complete = any({f"cameras.{e}", f"images.{e}", f"points3D.{e}"} <= names
+                   for e in ("bin", "txt"))
     return complete and names <= MODEL_FILES and len(names) == len(list(path.iterdir()))
 
 
@@ -136,6 +139,13 @@ def replacing(output_path: str | Path, layout: OutputLayout, overwrite: bool) ->
         raise
 
 
+def moved(path: str | Path, new: Path, final: Path) -> Path:
+    """Where `path` will be once `new`, the folder `replacing` yielded, is moved into
+    `final`: for paths a command records or prints. A path outside `new` stays as it is."""
+    path = Path(path)
+    return final / path.relative_to(new) if path.is_relative_to(new) else path
+
+
 def _previous_result(output_path: Path, layout: OutputLayout, overwrite: bool) -> list[Path]:
     """The command's entries already in `output_path`: refused without `overwrite`, and
     refused always when an entry of the command's name is not the command's."""
@@ -199,7 +209,8 @@ def _signals_deferred() -> Iterator[None]:
         return
     received: list[int] = []
     previous = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
-    deferred = [signum for signum, handler in previous.items() if handler not in (None, signal.SIG_IGN)]
+    deferred = [signum for signum, handler in previous.items()
+                if handler not in (None, signal.SIG_IGN)]
     for signum in deferred:
         signal.signal(signum, lambda number, frame: received.append(number))
     try:

@@ -12,8 +12,9 @@ from __future__ import annotations
 import argparse
 import secrets
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 
 from colmap_ext import distributed
@@ -32,7 +33,7 @@ from colmap_ext.mapper.flags import boolean, random_seed
 from colmap_ext.masks import METHODS, make_masks
 from colmap_ext.matching import MATCHERS, match_features
 from colmap_ext.model_io import (MAPPER_OUTPUT, OUTPUT_TYPES, OutputLayout, holds_only,
-                                 is_file, replacing, write_json)
+                                 is_file, moved, replacing, write_json)
 
 DATABASE_NAME = "database.db"
 WORKSPACE = OutputLayout("a workspace", {
@@ -101,27 +102,32 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
                                  output_type)
     with replacing(workspace_path, WORKSPACE, overwrite) as new_workspace, \
             distributed.optional_cluster(ray_address) as cluster:
-        summary = run_stages(image_path, workspace, new_workspace, camera_model, camera_mode,
-                             mask_path, segment, min_num_keypoints, domain_size_pooling,
-                             matcher, exact_matching, seed, output_type, names, params,
-                             cluster, start)
+        summary = run_stages(
+            image_path, new_workspace, partial(moved, new=new_workspace, final=workspace),
+            camera_model, params, names, seed, start, camera_mode=camera_mode,
+            mask_path=mask_path, segment=segment, min_num_keypoints=min_num_keypoints,
+            domain_size_pooling=domain_size_pooling, matcher=matcher,
+            exact_matching=exact_matching, output_type=output_type, cluster=cluster)
     print(format_summary(summary, workspace))
     return summary
 
 
-def run_stages(image_path: str, workspace: Path, new_workspace: Path, camera_model: str,
-               camera_mode: str, mask_path: str | None, segment: str | None,
-               min_num_keypoints: int, domain_size_pooling: bool, matcher: str,
-               exact_matching: bool, seed: int | None, output_type: str, names: list[str],
-               params: list[float], cluster: distributed.Cluster | None, start: float) -> dict:
-    """The stages of `main` once the inputs are checked, written into `new_workspace`
-    (which replaces the contents of `workspace` afterwards); `cluster`: where features
-    and matching run (None: here)."""
+def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str | Path], Path],
+               camera_model: str, params: list[float], names: list[str], seed: int | None,
+               start: float, *, camera_mode: str = "single", mask_path: str | None = None,
+               segment: str | None = None, min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS,
+               domain_size_pooling: bool = False, matcher: str = "auto",
+               exact_matching: bool = False, output_type: str = "BIN",
+               cluster: distributed.Cluster | None = None) -> dict:
+    """The stages of `main` once the inputs are checked, written into `new_workspace`, a
+    folder of model_io.replacing; `shown`: where a path will be once it is moved into place
+    (model_io.moved), for the summary; `cluster`: where features and matching run (None:
+    here)."""
     seed = secrets.randbits(31) if seed is None else seed
     database_path = new_workspace / DATABASE_NAME
     times: dict[str, float] = {}
     summary: dict = {"inputs": {
-        "image_path": str(image_path), "camera_model": camera_model,
+        "image_path": str(shown(image_path)), "camera_model": camera_model,
         "camera_params": params, "camera_mode": camera_mode,
         "mask_path": mask_path, "segment": segment, "min_num_keypoints": min_num_keypoints,
         "domain_size_pooling": domain_size_pooling, "matcher": matcher,
@@ -131,7 +137,7 @@ def run_stages(image_path: str, workspace: Path, new_workspace: Path, camera_mod
         mask_path = str(new_workspace / "masks")
         with stage(times, "masks"):
             coverage = make_masks(image_path, mask_path, segment, names)
-        summary["masks"] = {"path": str(workspace / "masks"), "coverage": coverage}
+        summary["masks"] = {"path": str(shown(mask_path)), "coverage": coverage}
     if cluster is None:
         with stage(times, "features"):
             features = extract_features(database_path, image_path, camera_model=camera_model,
@@ -154,7 +160,7 @@ def run_stages(image_path: str, workspace: Path, new_workspace: Path, camera_mod
     with stage(times, "mapper"):
         models = run_mapper(database_path, image_path, new_workspace / "sparse",
                             MapperOptions(seed=seed), output_type=output_type.upper())
-    summary["models"] = [{"path": str(workspace / "sparse" / str(index)),
+    summary["models"] = [{"path": str(shown(new_workspace / "sparse" / str(index))),
                           "num_registered": model.num_reg_images(),
                           "num_points3D": model.num_points3D()}
                          for index, model in models.items()]
@@ -166,7 +172,8 @@ def run_stages(image_path: str, workspace: Path, new_workspace: Path, camera_mod
 
 def check_inputs(image_path: str, workspace: Path, camera_model: str, camera_params: str,
                  camera_mode: str, mask_path: str | None, segment: str | None,
-                 min_num_keypoints: int, matcher: str, output_type: str) -> tuple[list[str], list[float]]:
+                 min_num_keypoints: int, matcher: str,
+                 output_type: str) -> tuple[list[str], list[float]]:
     """Every check that can fail, before any work; returns the image names and the
     camera parameters."""
     if mask_path is not None and segment is not None:

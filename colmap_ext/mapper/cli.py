@@ -71,7 +71,8 @@ def _read_image_list(path: str | None) -> list[str] | None:
     except OSError as exc:
         raise UserError(f"cannot read image list {path}: {exc.strerror}") from None
     except UnicodeDecodeError:
-        raise UserError(f"image list {path} is not text: expected one image name per line") from None
+        raise UserError(f"image list {path} is not text: expected one image name per "
+                        "line") from None
     if not names:
         raise UserError(f"image list {path} is empty")
     return names

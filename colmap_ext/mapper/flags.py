@@ -61,7 +61,8 @@ def random_seed(text: str) -> int:
     """A RANSAC seed: 0 to the largest C int (pycolmap's random_seed)."""
     value = int32(text)
     if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a seed from 0 to {INT32_RANGE[1]}, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected a seed from 0 to {INT32_RANGE[1]}, "
+                                         f"got {text!r}")
     return value
 
 
