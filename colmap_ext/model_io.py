@@ -90,7 +90,7 @@ class OutputLayout:
 MAPPER_OUTPUT = OutputLayout("a model", {"mapper_summary.json": is_file}, numbered=is_model_folder)
 
 
-def check_output_path(output_path: str | Path) -> Path:
+def _check_output_path(output_path: str | Path) -> Path:
     """The output folder, refused when empty or a file."""
     if not str(output_path).strip():
         raise UserError("the output path is empty")
@@ -107,7 +107,7 @@ def replacing(output_path: str | Path, layout: OutputLayout, overwrite: bool) ->
     `output_path` (with `overwrite`; without it, an earlier result is refused before any
     work). On an error or an interrupt nothing in `output_path` changes, and a folder
     created for the run is removed again."""
-    output_path = check_output_path(output_path)
+    output_path = _check_output_path(output_path)
     created = not output_path.exists()
     try:
         output_path.mkdir(parents=True, exist_ok=True)

@@ -3,6 +3,10 @@ subprocess and checks the exit code, one clear line on stderr, no traceback, and
 every input (and any previous model) is byte for byte what it was, with no stray files
 (e.g. SQLite `-wal`/`-shm` files beside a database) and no temporary folders left.
 
+An interrupted run (exit 130 or 143: `interrupted(marker, signal)` sends the signal once a
+stage has begun) may print the stage's own log lines first; its last line is the one
+message, and no stack dump follows. Inputs and the previous result stay byte for byte.
+
 To add a case, write a builder under `@case(...)`: it makes the inputs in `env.inputs`
 (hashed before and after the run) and returns the command's arguments.
 """
