@@ -117,25 +117,27 @@ class Assets:
         return path
 
     @cached_property
-    def ring(self) -> Path:
-        """10 rendered 320x240 views of the ring scene: `reconstruct` takes about 6 s."""
+    def ring(self) -> tuple[Path, Path]:
+        """10 rendered 320x240 views of the ring scene (`reconstruct` takes about 6 s) and
+        their ground truth (Middlebury *_par.txt)."""
         import pycolmap
 
-        from colmap_ext.synthetic.render import render_images
+        from colmap_ext.synthetic.render import render_images, write_par_file
         from colmap_ext.synthetic.scene import ring_scene
 
         camera = pycolmap.Camera(camera_id=1, model="PINHOLE", width=320, height=240,
                                  params=RING_PARAMS)
-        render_images(ring_scene(num_images=10, seed=0, camera=camera), self.root / "ring",
-                      supersample=1)
-        return self.root / "ring"
+        scene = ring_scene(num_images=10, seed=0, camera=camera)
+        render_images(scene, self.root / "ring", supersample=1)
+        write_par_file(scene, self.root / "ring_par.txt")
+        return self.root / "ring", self.root / "ring_par.txt"
 
     @cached_property
     def workspace(self) -> Path:
         """WS/ of `reconstruct` on `ring`: database.db, sparse/0 ..., reconstruct_summary.json."""
         from colmap_ext.reconstruct import main
 
-        main(self.ring, self.root / "workspace", "PINHOLE", ",".join(map(str, RING_PARAMS)), seed=0)
+        main(self.ring[0], self.root / "workspace", "PINHOLE", ",".join(map(str, RING_PARAMS)), seed=0)
         return self.root / "workspace"
 
     @cached_property
@@ -877,20 +879,24 @@ class Running:
     def __init__(self, env: Env, args: list[str]) -> None:
         self.stdout = open(env.root / f"stdout-{len(list(env.root.glob('stdout-*')))}.txt", "w+")
         self.process = subprocess.Popen(
-            [*CLI, *args], stdout=self.stdout, stderr=subprocess.PIPE, text=True,
-            env=child_env(env), cwd=env.root,
-            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-        self.stderr: list[str] = []
+            [*CLI, *args], stdout=self.stdout, stderr=subprocess.PIPE, env=child_env(env),
+            cwd=env.root, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        self.chunks: list[bytes] = []  # what stderr has said so far, as it comes
+        fd = self.process.stderr.fileno()
         self.reader = threading.Thread(
-            target=lambda: self.stderr.extend(iter(lambda: self.process.stderr.read(1), "")))
+            target=lambda: self.chunks.extend(iter(lambda: os.read(fd, 65536), b"")))
         self.reader.start()
+
+    @property
+    def stderr(self) -> str:
+        return b"".join(self.chunks).decode(errors="replace")
 
     def wait_for(self, marker: str) -> bool:
         """Wait until `marker` is on stderr; True if the run is still going then."""
         deadline = time.monotonic() + 120
-        while marker not in "".join(self.stderr) and self.process.poll() is None \
+        while marker not in self.stderr and self.process.poll() is None \
                 and time.monotonic() < deadline:
-            time.sleep(0.05)
+            time.sleep(0.01)
         return self.process.poll() is None
 
     def result(self) -> subprocess.CompletedProcess:
@@ -898,8 +904,9 @@ class Running:
         self.reader.join()
         self.stdout.seek(0)
         result = subprocess.CompletedProcess(self.process.args, self.process.returncode,
-                                             self.stdout.read(), "".join(self.stderr))
+                                             self.stdout.read(), self.stderr)
         self.stdout.close()
+        self.process.stderr.close()
         return result
 
 
@@ -1266,7 +1273,7 @@ def _(env):
     return _compare(env)
 
 
-def _compare_over_a_comparison(env, database: Path, images: Path) -> list[str]:
+def _compare_over_a_comparison(env, database: Path, images: Path, *extra: str) -> list[str]:
     """compare --overwrite over the output of an earlier comparison."""
     for mapper in ("ours", "colmap_incremental"):
         shutil.copytree(env.assets.model, env.out / mapper)
@@ -1275,15 +1282,18 @@ def _compare_over_a_comparison(env, database: Path, images: Path) -> list[str]:
     env.protected.append(env.out)
     return ["compare", "--database_path", str(env.copy(database)), "--image_path",
             str(env.copy(images, "images")), "--output_path", str(env.out), "--overwrite",
-            "--seed", "0"]
+            "--seed", "0", *extra]
 
 
 # Issue 33, defect 4: an interrupt could leave ours/0 of the new run beside the old report.
 @case("compare_ctrl_c_in_the_second_mapper", "interrupted by SIGINT", code=130,
       command="compare", run=interrupted("[2/3] colmap_incremental", delay=0.0))
 def _(env):
-    """On the rendered ring's database: COLMAP's mappers register images from it."""
-    return _compare_over_a_comparison(env, env.assets.workspace / "database.db", env.assets.ring)
+    """On the rendered ring's database, from which COLMAP's mappers register images, with
+    its ground truth: evaluating and plotting keep the run going after the mappers."""
+    images, truth = env.assets.ring
+    return _compare_over_a_comparison(env, env.assets.workspace / "database.db", images,
+                                      "--ground_truth", str(env.copy(truth)))
 
 
 @case("compare_sigterm_in_our_mapper", "interrupted by SIGTERM", code=143, command="compare",
@@ -1325,7 +1335,7 @@ def _reconstruct_over_a_workspace(env) -> list[str]:
     """reconstruct --overwrite on the rendered ring, over the workspace of an earlier run."""
     shutil.copytree(env.assets.workspace, env.out)
     env.protected.append(env.out)
-    return ["reconstruct", "--image_path", str(env.copy(env.assets.ring, "images")),
+    return ["reconstruct", "--image_path", str(env.copy(env.assets.ring[0], "images")),
             "--workspace_path", str(env.out), "--camera_model", "PINHOLE",
             "--camera_params", ",".join(map(str, RING_PARAMS)), "--seed", "0", "--overwrite"]
 
