@@ -18,7 +18,8 @@ def incremental_mapping(database_path: str | Path, image_path: str | Path,
                         input_path: str | Path | None = None,
                         ) -> dict[int, pycolmap.Reconstruction]:
     """Reconstruct into OUTPUT/0, OUTPUT/1, ... and return the models by index, as
-    pycolmap does (models already there are replaced); with `input_path`, continue that
+    pycolmap does (models already there are replaced; a numbered folder there that is no
+    model is not, and the call refuses); with `input_path`, continue that
     model. A pycolmap options object is read through the option table (mapper/flags.py):
     every value it holds is applied, so a default-constructed one carries COLMAP's
     thresholds, except its intrinsics refinement (flags.pycolmap_options); None gives our

@@ -11,11 +11,12 @@ import argparse
 import ctypes
 import importlib
 import os
+import signal
 import sys
 from typing import NoReturn
 
 from colmap_ext import __version__
-from colmap_ext.errors import UserError
+from colmap_ext.errors import Interrupted, UserError
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -50,6 +51,19 @@ def limit_malloc_arenas(count: int = 2) -> None:
         ctypes.CDLL(None).mallopt(M_ARENA_MAX, count)
     except (OSError, AttributeError):
         pass
+
+
+def _raise_interrupted(signum: int, frame: object) -> None:
+    raise Interrupted(signum)
+
+
+def handle_interrupts() -> None:
+    """SIGINT and SIGTERM raise `Interrupted`, so every command cleans up and ends the
+    same way. pycolmap's glog replaces SIGTERM's handler with a stack dump, so this runs
+    after the imports; a SIGINT ignored from the start (a background job) stays ignored."""
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        if signal.getsignal(signum) is not signal.SIG_IGN:
+            signal.signal(signum, _raise_interrupted)
 
 
 class ArgumentParser(argparse.ArgumentParser):
@@ -99,11 +113,14 @@ def main(argv: list[str] | None = None) -> int:
         import pycolmap  # not at the top: loaded before zlib, pycolmap breaks every PNG write
 
         pycolmap.logging.logtostderr = True
+        handle_interrupts()
         args._module.main(**kwargs)
     except UserError as exc:
         print(f"colmap-ext: error: {exc}", file=sys.stderr)
         return 1
-    except KeyboardInterrupt:
-        print("colmap-ext: interrupted; nothing was written over.", file=sys.stderr)
-        return 130
+    except KeyboardInterrupt as exc:
+        signum = getattr(exc, "signum", signal.SIGINT)
+        print(f"colmap-ext: interrupted by {signal.Signals(signum).name}; no partial result "
+              "was written", file=sys.stderr)
+        return 128 + signum
     return 0

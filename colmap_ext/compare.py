@@ -53,11 +53,16 @@ from colmap_ext.evaluate import MEASURES, evaluate, summary_key
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper import MapperOptions
 from colmap_ext.mapper import run as run_ours
-from colmap_ext.model_io import write_json, write_models
+from colmap_ext.mapper.flags import random_seed
+from colmap_ext.model_io import (MAPPER_OUTPUT, TEMPORARY_PREFIX, OutputLayout, is_file,
+                                 replacing, write_json, write_models)
 from colmap_ext.plots import plot_errors
 
 MAPPERS = ("ours", "colmap_incremental", "colmap_global")
 REPORT_NAME = "report.json"
+COMPARISON = OutputLayout("a comparison", {
+    **{name: MAPPER_OUTPUT.is_output for name in MAPPERS},
+    REPORT_NAME: is_file, "report.md": is_file, "errors.png": is_file})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -71,7 +76,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "COLMAP model: adds the paper's pose errors")
     parser.add_argument("--mappers", default=",".join(MAPPERS),
                         help=f"comma-separated, from {', '.join(MAPPERS)} (default: all)")
-    parser.add_argument("--seed", type=int, default=None,
+    parser.add_argument("--seed", type=random_seed, default=None,
                         help="random seed of every mapper (default: random, recorded in the report)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the report and models of an earlier comparison")
@@ -240,25 +245,13 @@ def parse_mappers(mappers: str | Sequence[str]) -> list[str]:
     return names
 
 
-def check_inputs(database_path: Path, image_path: Path, output_path: Path,
-                 ground_truth: str | os.PathLike | None, mappers: list[str],
-                 overwrite: bool) -> GroundTruth | None:
+def check_inputs(database_path: Path, image_path: Path,
+                 ground_truth: str | os.PathLike | None) -> GroundTruth | None:
     """The checks that need no copy of the database; returns the ground truth."""
     check_database_file(database_path)
     if not image_path.is_dir():
         raise UserError(f"image path not found: {image_path}")
-    truth = read_ground_truth(ground_truth) if ground_truth is not None else None
-    if output_path.exists() and not output_path.is_dir():
-        raise UserError(f"output path is a file, not a folder: {output_path}")
-    if not overwrite:
-        if (output_path / REPORT_NAME).exists():
-            raise UserError(f"{output_path / REPORT_NAME} exists from an earlier comparison; "
-                            "pass --overwrite to replace it")
-        taken = [m for m in mappers if (output_path / m / "0").exists()]
-        if taken:
-            raise UserError(f"{output_path / taken[0] / '0'} already holds a model; pass "
-                            "--overwrite to replace it")
-    return truth
+    return read_ground_truth(ground_truth) if ground_truth is not None else None
 
 
 def read_image_names(copy: Path, database_path: Path) -> list[str]:
@@ -284,17 +277,6 @@ def check_ground_truth_names(names: list[str], truth: GroundTruth, database_path
                         f"the database {database_path}; is it the right ground truth?")
 
 
-def _make_output_folder(output_path: Path) -> bool:
-    """Create the output folder if needed and check it takes files; True if it was created."""
-    created = not output_path.exists()
-    try:
-        output_path.mkdir(parents=True, exist_ok=True)
-        os.rmdir(tempfile.mkdtemp(prefix=".colmap-ext-", dir=output_path))
-    except OSError as exc:
-        raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
-    return created
-
-
 def compare(database_path: str | os.PathLike, image_path: str | os.PathLike,
             output_path: str | os.PathLike, *, ground_truth: str | os.PathLike | None = None,
             mappers: str | Sequence[str] = MAPPERS, seed: int | None = None,
@@ -303,30 +285,25 @@ def compare(database_path: str | os.PathLike, image_path: str | os.PathLike,
     ground truth); returns the report.
 
     The user's database is read once, as bytes, into a private copy; every mapper gets a
-    copy of that copy. Every check runs before the first mapper.
+    copy of that copy. Every check runs before the first mapper. The whole comparison is
+    built beside OUTPUT_PATH and replaces an earlier one at the end (model_io.replacing).
     """
-    database_path, image_path, output_path = Path(database_path), Path(image_path), Path(output_path)
+    database_path, image_path = Path(database_path), Path(image_path)
     names = parse_mappers(mappers)
-    truth = check_inputs(database_path, image_path, output_path, ground_truth, names, overwrite)
-    created = _make_output_folder(output_path)
-    work = Path(tempfile.mkdtemp(prefix=".colmap-ext-compare-", dir=output_path))
-    try:
-        source = work / "source" / "database.db"
-        source.parent.mkdir()
+    truth = check_inputs(database_path, image_path, ground_truth)
+    with replacing(output_path, COMPARISON, overwrite) as new_output:
+        work = Path(tempfile.mkdtemp(prefix=f"{TEMPORARY_PREFIX}compare-", dir=new_output.parent))
         try:
+            source = work / "source" / "database.db"
+            source.parent.mkdir()
             copy_database(database_path, source)
             image_names = read_image_names(source, database_path)
             if truth is not None:
                 check_ground_truth_names(image_names, truth, database_path)
-        except BaseException:
+            return _compare(source, len(image_names), database_path, image_path, new_output,
+                            ground_truth, truth, names, seed, progress, work)
+        finally:
             shutil.rmtree(work, ignore_errors=True)
-            if created:
-                shutil.rmtree(output_path, ignore_errors=True)
-            raise
-        return _compare(source, len(image_names), database_path, image_path, output_path,
-                        ground_truth, truth, names, seed, progress, work)
-    finally:
-        shutil.rmtree(work, ignore_errors=True)
 
 
 def _compare(source: Path, num_images: int, database_path: Path, image_path: Path,
@@ -349,9 +326,7 @@ def _compare(source: Path, num_images: int, database_path: Path, image_path: Pat
         result = run_mapper(name, copy, image_path, output_path / name, seed, progress)
         shutil.rmtree(copy.parent, ignore_errors=True)
         entry = _mapper_entry(result, num_images)
-        if result.error is not None:
-            _remove_stale_models(output_path / name)
-        else:
+        if result.error is None:
             models[name] = result.reconstructions[0]
             if truth is not None:
                 try:
@@ -368,8 +343,6 @@ def _compare(source: Path, num_images: int, database_path: Path, image_path: Pat
     errors_png = output_path / "errors.png"
     if evaluations:
         plot_errors(evaluations, errors_png)
-    else:
-        errors_png.unlink(missing_ok=True)  # a stale figure of an earlier comparison
     write_json(report, output_path / REPORT_NAME)
     _write_text(output_path / "report.md", format_markdown(report, has_plot=bool(evaluations)))
     return report
@@ -393,16 +366,6 @@ def _mapper_entry(result: MapperRun, num_images: int) -> dict:
     if result.error is not None:
         entry["error"] = result.error
     return entry
-
-
-def _remove_stale_models(folder: Path) -> None:
-    """A failed mapper leaves no model of an earlier run behind in its folder."""
-    if not folder.is_dir():
-        return
-    for child in folder.iterdir():
-        if child.is_dir() and child.name.isdigit():
-            shutil.rmtree(child, ignore_errors=True)
-    (folder / "mapper_summary.json").unlink(missing_ok=True)
 
 
 def _one_line(entry: dict) -> str:

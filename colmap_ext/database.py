@@ -130,31 +130,82 @@ def copy_database(path: Path, copy: Path) -> None:
                         f"{exc.strerror or exc}") from None
 
 
-# COLMAP's camera model ids -> number of parameters.
-_NUM_PARAMS = {int(model_id): len(pycolmap.Camera.create_from_model_id(0, model_id, 1.0, 1, 1).params)
-               for name, model_id in pycolmap.CameraModelId.__members__.items() if name != "INVALID"}
+_MODELS = {int(model_id): pycolmap.Camera.create_from_model_id(0, model_id, 1.0, 1, 1)
+           for name, model_id in pycolmap.CameraModelId.__members__.items() if name != "INVALID"}
+# COLMAP's camera model ids -> number of parameters, and the focal lengths' indices.
+_NUM_PARAMS = {model_id: len(camera.params) for model_id, camera in _MODELS.items()}
+_FOCAL_LENGTH_IDXS = {model_id: camera.focal_length_idxs() for model_id, camera in _MODELS.items()}
+# Bytes of the two-view geometry blobs that hold one fixed-size array each (doubles):
+# F, E, H 3x3, qvec 4, tvec 3. Empty or NULL: not estimated.
+_GEOMETRY_BLOB_BYTES = {"F": 72, "E": 72, "H": 72, "qvec": 32, "tvec": 24}
+# Columns a keypoints row may have: x, y; x, y, scale, orientation; x, y and an affine shape.
+_KEYPOINT_COLUMNS = (2, 4, 6)
 
 
 def _check_tables(copy: Path, path: Path) -> None:
-    """The COLMAP tables are there and every camera is one pycolmap can read."""
+    """The COLMAP tables are there, every camera is one pycolmap can read, and every
+    keypoint and match blob holds what its rows and columns say (read as raw bytes before
+    pycolmap, which would read past a short blob or reinterpret a long one)."""
     try:
         with closing(sqlite3.connect(copy)) as conn:
             tables = {row[0] for row in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-            cameras = conn.execute("SELECT camera_id, model, params FROM cameras").fetchall() \
-                if "cameras" in tables else []
+            missing = {"cameras", "images", "keypoints", "descriptors", "matches"} - tables
+            if missing:
+                raise UserError(f"not a COLMAP database (no table {', '.join(sorted(missing))}): "
+                                f"{path}")
+            for row in conn.execute("SELECT camera_id, model, width, height, params FROM cameras"):
+                _check_camera(*row, path)
+            _check_blobs(conn, path, "two_view_geometries" in tables)
     except sqlite3.Error as exc:
         raise UserError(f"cannot read database {path}: {exc}") from None
-    missing = {"cameras", "images", "keypoints", "descriptors", "matches"} - tables
-    if missing:
-        raise UserError(f"not a COLMAP database (no table {', '.join(sorted(missing))}): {path}")
-    for camera_id, model_id, params in cameras:
-        if model_id not in _NUM_PARAMS:
-            raise UserError(f"camera {camera_id} in {path} has model id {model_id}, which is no "
-                            "COLMAP camera model")
-        num_params = len(params or b"") / 8
-        if num_params != _NUM_PARAMS[model_id]:
-            raise UserError(f"camera {camera_id} in {path} has {num_params:g} params; its model "
-                            f"{pycolmap.CameraModelId(model_id).name} takes {_NUM_PARAMS[model_id]}")
+
+
+def _check_camera(camera_id: int, model_id: int, width: int, height: int, params: bytes | None,
+                  path: Path) -> None:
+    if model_id not in _NUM_PARAMS:
+        raise UserError(f"camera {camera_id} in {path} has model id {model_id}, which is no "
+                        "COLMAP camera model")
+    num_params = len(params or b"") / 8
+    if num_params != _NUM_PARAMS[model_id]:
+        raise UserError(f"camera {camera_id} in {path} has {num_params:g} params; its model "
+                        f"{pycolmap.CameraModelId(model_id).name} takes {_NUM_PARAMS[model_id]}")
+    values = np.frombuffer(params, np.float64)
+    if not np.isfinite(values).all():
+        raise UserError(f"camera {camera_id} in {path} has no valid parameters "
+                        f"(model {pycolmap.CameraModelId(model_id).name}, params {list(values)})")
+    if not (isinstance(width, int) and isinstance(height, int) and width > 0 and height > 0):
+        raise UserError(f"camera {camera_id} in {path} has an image size of {width} x {height}; "
+                        "expected positive integers")
+    focal_lengths = values[_FOCAL_LENGTH_IDXS[model_id]]
+    if (focal_lengths <= 0).any():
+        raise UserError(f"camera {camera_id} in {path} has focal length "
+                        f"{', '.join(f'{f:g}' for f in focal_lengths)}; expected a positive one")
+
+
+def _check_blobs(conn: sqlite3.Connection, path: Path, has_geometries: bool) -> None:
+    """Keypoints: rows x (2, 4 or 6) float32; matches and verified matches: rows x 2
+    uint32; the two-view geometry's matrices: empty or their size."""
+    for image_id, name, rows, cols, size in conn.execute(
+            "SELECT keypoints.image_id, images.name, keypoints.rows, keypoints.cols, "
+            "length(keypoints.data) FROM keypoints LEFT JOIN images USING (image_id)"):
+        if rows and (cols not in _KEYPOINT_COLUMNS or size != rows * cols * 4):
+            raise UserError(f"the keypoints of image {name or image_id} in {path} hold {size} "
+                            f"bytes for {rows} x {cols}; expected {rows} rows of 2, 4 or 6 "
+                            "4-byte numbers")
+    geometry_columns = ", " + ", ".join(f"length({c})" for c in _GEOMETRY_BLOB_BYTES)
+    for table in ("matches", "two_view_geometries") if has_geometries else ("matches",):
+        extra = geometry_columns if table == "two_view_geometries" else ""
+        for pair_id, rows, cols, size, *blobs in conn.execute(
+                f"SELECT pair_id, rows, cols, length(data){extra} FROM {table}"):
+            pair = "images {} and {}".format(*pycolmap.pair_id_to_image_pair(pair_id))
+            if rows and (cols != 2 or size != rows * 8):
+                raise UserError(f"{table} of {pair} in {path} hold {size} bytes for {rows} x "
+                                f"{cols}; expected {rows} rows of 2 keypoint indices "
+                                "(4 bytes each)")
+            for (blob, expected), length in zip(_GEOMETRY_BLOB_BYTES.items(), blobs):
+                if length and length != expected:
+                    raise UserError(f"two_view_geometries of {pair} in {path}: {blob} holds "
+                                    f"{length} bytes; expected {expected}")
 
 
 def read_database(path: str | Path) -> DatabaseContents:
@@ -197,11 +248,10 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
             np.asarray(keypoints[:, :2], dtype=np.float64))
     if not images:
         raise UserError(f"the database has no images: {path}")
-    for camera in cameras.values():
-        if len(camera.params) == 0 or not np.isfinite(camera.params).all() or \
-                camera.width <= 0 or camera.height <= 0:
-            raise UserError(f"camera {camera.camera_id} in {path} has no valid parameters "
-                            f"(model {camera.model.name}, params {list(camera.params)})")
+    for image in images.values():
+        if not np.isfinite(image.keypoints).all():
+            raise UserError(f"the keypoints of image {image.name} in {path} are not all finite "
+                            "numbers (NaN or infinity)")
     if sum(len(image.keypoints) for image in images.values()) == 0:
         raise UserError(f"the database has no keypoints: {path} (run feature extraction first)")
 
@@ -247,7 +297,9 @@ def _check_match_indices(contents: DatabaseContents, path: Path) -> None:
             if id1 not in contents.images or id2 not in contents.images:
                 raise UserError(f"matches refer to an image that is not in {path}: {id1}, {id2}")
             n1, n2 = len(contents.images[id1].keypoints), len(contents.images[id2].keypoints)
-            if len(matches) and (matches[:, 0].max() >= n1 or matches[:, 1].max() >= n2):
+            # int32 from COLMAP's uint32: an index of 2^31 or more reads as negative
+            if len(matches) and (matches.min() < 0 or matches[:, 0].max() >= n1
+                                 or matches[:, 1].max() >= n2):
                 raise UserError(f"matches between images {id1} and {id2} refer to keypoints "
                                 f"that do not exist in {path}")
 

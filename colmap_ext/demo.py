@@ -8,13 +8,27 @@ ground truth beside them; then `reconstruct` and `evaluate` on it.
 from __future__ import annotations
 
 import argparse
-import shutil
+import time
+from functools import partial
 from pathlib import Path
 
 from colmap_ext import evaluate, reconstruct
 from colmap_ext.errors import UserError
+from colmap_ext.features import list_images
+from colmap_ext.ground_truth import read_ground_truth, read_model
+from colmap_ext.mapper.flags import random_seed
+from colmap_ext.model_io import (OutputLayout, holds_only, is_file, is_model_folder, moved,
+                                 replacing)
 from colmap_ext.synthetic.render import render_images, write_ground_truth
 from colmap_ext.synthetic.scene import ring_scene
+
+# The most views the demo renders: far more than a demo needs; without a bound, a typo
+# renders until memory runs out.
+MAX_NUM_IMAGES = 1000
+DEMO_OUTPUT = OutputLayout("a demo", {
+    "images": holds_only(r"ring\d{4}\.png"), "ground_truth": is_model_folder,
+    "workspace": reconstruct.WORKSPACE.is_output, "report.json": is_file,
+    "errors.png": is_file, "errors_scene.png": is_file})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -22,36 +36,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="folder for the images, ground truth, workspace, report.json and "
                              "the figures errors.png and errors_scene.png")
     parser.add_argument("--num_images", type=int, default=24)
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--seed", type=random_seed, default=0)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace a demo already in OUTPUT_PATH")
 
 
 def main(output_path: str, num_images: int = 24, seed: int = 0, overwrite: bool = False) -> dict:
-    if num_images < 3:
-        raise UserError(f"--num_images must be at least 3, got {num_images}")
+    """Render, reconstruct and evaluate in a folder beside OUTPUT_PATH, then move the
+    images, ground truth, workspace, report and figures into it together."""
+    if not 3 <= num_images <= MAX_NUM_IMAGES:
+        raise UserError(f"--num_images must be at least 3 and at most {MAX_NUM_IMAGES}, "
+                        f"got {num_images}")
+    start = time.perf_counter()
     root = Path(output_path)
-    if root.exists() and not root.is_dir():
-        raise UserError(f"output path is a file, not a folder: {root}")
-    if (root / "workspace").exists():
-        if not overwrite:
-            raise UserError(f"{root} already holds a demo; pass --overwrite to replace it")
-        for name in ("images", "ground_truth", "workspace"):
-            shutil.rmtree(root / name, ignore_errors=True)
-    images, truth, workspace = root / "images", root / "ground_truth", root / "workspace"
-    scene = ring_scene(num_images=num_images, seed=seed)
-    print(f"Rendering {num_images} views of the demo scene to {images}/ ...")
-    render_images(scene, images, seed=seed)
-    truth.mkdir(parents=True, exist_ok=True)
-    write_ground_truth(scene, truth)
-    camera = scene.camera
-    reconstruct.main(image_path=str(images), workspace_path=str(workspace),
-                     camera_model=camera.model.name,
-                     camera_params=",".join(f"{p:.17g}" for p in camera.params),
-                     seed=seed, overwrite=overwrite)
-    print()
-    report = evaluate.main(model_path=workspace / "sparse" / "0", ground_truth=truth,
-                           output=root / "report.json", plot=root / "errors.png")
-    print(f"\nModel: {workspace / 'sparse' / '0'}   report: {root / 'report.json'}   "
+    with replacing(output_path, DEMO_OUTPUT, overwrite) as new_root:
+        images, truth = new_root / "images", new_root / "ground_truth"
+        workspace = new_root / "workspace"
+        scene = ring_scene(num_images=num_images, seed=seed)
+        print(f"Rendering {num_images} views of the demo scene to {root / 'images'}/ ...")
+        render_images(scene, images, seed=seed)
+        write_ground_truth(scene, truth)
+        workspace.mkdir()
+        summary = reconstruct.run_stages(
+            images, workspace, partial(moved, new=new_root, final=root), scene.camera.model.name,
+            list(scene.camera.params), list_images(images), seed, start)
+        print(reconstruct.format_summary(summary, root / "workspace"))
+        print()
+        report = evaluate.evaluate_and_write(
+            read_model(workspace / "sparse" / "0"), read_ground_truth(truth),
+            new_root / "report.json", new_root / "errors.png",
+            label=str(root / "workspace" / "sparse" / "0"))
+    print(f"\nModel: {root / 'workspace' / 'sparse' / '0'}   report: {root / 'report.json'}   "
           f"plots: {root / 'errors.png'}, {evaluate.scene_plot_path(root / 'errors.png')}")
     return report

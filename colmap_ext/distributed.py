@@ -586,6 +586,11 @@ def run_local_or_on_cluster(cluster: Cluster | None, function: Callable,
         with ProcessPoolExecutor(num_workers, mp_context=context, initializer=end_with_parent,
                                  initargs=(os.getpid(),)) as pool:
             futures = [pool.submit(function, *args) for args in arguments]
-            for future in as_completed(futures):
-                yield future.result()
-                bar.update(1)
+            try:
+                for future in as_completed(futures):
+                    yield future.result()
+                    bar.update(1)
+            except BaseException:  # an error or Ctrl-C/SIGTERM: end the workers, not wait for them
+                for worker in multiprocessing.active_children():
+                    worker.terminate()
+                raise

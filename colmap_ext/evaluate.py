@@ -56,16 +56,22 @@ def main(model_path: str | os.PathLike, ground_truth: str | os.PathLike,
          format: str | None = None) -> dict:
     """Evaluate the model at `model_path`, print a table, optionally write JSON and the plots
     (`plot` and `scene_plot_path(plot)`)."""
-    reconstruction = read_model(Path(model_path))
-    truth = read_ground_truth(ground_truth, format)
+    return evaluate_and_write(read_model(Path(model_path)), read_ground_truth(ground_truth, format),
+                              output, plot, label=str(model_path))
+
+
+def evaluate_and_write(reconstruction: pycolmap.Reconstruction, truth: GroundTruth,
+                       output: str | os.PathLike | None, plot: str | os.PathLike | None,
+                       label: str) -> dict:
+    """`main` on a model read already: the plots name it `label`."""
     report = evaluate(reconstruction, truth)
     print(format_table(report))
     if output is not None:
         write_json(report, Path(output))
     if plot is not None:
-        plot_errors({str(model_path): report}, plot)
+        plot_errors({label: report}, plot)
         plot_scene(truth.poses, *aligned_to_ground_truth(reconstruction, truth),
-                   scene_plot_path(plot), title=str(model_path))
+                   scene_plot_path(plot), title=label)
     return report
 
 

@@ -36,7 +36,7 @@ from colmap_ext.mapper.bundle_adjustment import adjustment_options, posed_images
 from colmap_ext.mapper.initial_pair import check_requested_pair
 from colmap_ext.mapper.options import BundleAdjustmentOptions, MapperOptions, MergingOptions
 from colmap_ext.mapper.pipeline import StageTimer, reconstruct, summarize
-from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json, write_models
+from colmap_ext.model_io import MAPPER_OUTPUT, OUTPUT_TYPES, replacing, write_json, write_models
 
 
 # The clusters' mapper options where no --Mapper.* flag is given: the flat mapper's, but
@@ -540,31 +540,32 @@ def main(database_path: str, image_path: str, output_path: str,
     images = Path(image_path)
     if not images.is_dir():
         raise UserError(f"image path not found: {images}")
-    output = check_output_path(output_path, overwrite)
-    timer = StageTimer()
-    with timer("read database"):
-        db = read_database(database_path)
-    missing = [image.name for image in db.images.values() if not (images / image.name).is_file()]
-    if missing:
-        raise UserError(f"{len(missing)} images of the database are not under {images}: "
-                        f"{', '.join(missing[:3])}" + (" ..." if len(missing) > 3 else ""))
-    if ray_address is None:
-        reconstructions, reports = hierarchical_mapping(db, mapper_options, options, None,
-                                                        timer, progress)
-    else:
-        with connect(ray_address) as cluster:
-            reconstructions, reports = hierarchical_mapping(db, mapper_options, options,
-                                                            cluster, timer, progress)
-    if not reconstructions:
-        raise UserError("no model could be reconstructed: no cluster gave a relative pose "
-                        "with enough well-triangulated points")
-    with timer("export"):
-        if flags.get("Mapper.extract_colors") is not False:
-            for reconstruction in reconstructions:
-                reconstruction.extract_colors_for_all_images(str(images))
-        write_models(reconstructions, output, output_type.upper())
-    summary = summarize(reconstructions, timer, time.perf_counter() - start)
-    summary["clusters"] = [asdict(report) for report in reports]
-    write_json(summary, output / "mapper_summary.json")
-    print(format_summary(summary, str(output)))
+    with replacing(output_path, MAPPER_OUTPUT, overwrite) as new_output:
+        timer = StageTimer()
+        with timer("read database"):
+            db = read_database(database_path)
+        missing = [image.name for image in db.images.values()
+                   if not (images / image.name).is_file()]
+        if missing:
+            raise UserError(f"{len(missing)} images of the database are not under {images}: "
+                            f"{', '.join(missing[:3])}" + (" ..." if len(missing) > 3 else ""))
+        if ray_address is None:
+            reconstructions, reports = hierarchical_mapping(db, mapper_options, options, None,
+                                                            timer, progress)
+        else:
+            with connect(ray_address) as cluster:
+                reconstructions, reports = hierarchical_mapping(db, mapper_options, options,
+                                                                cluster, timer, progress)
+        if not reconstructions:
+            raise UserError("no model could be reconstructed: no cluster gave a relative pose "
+                            "with enough well-triangulated points")
+        with timer("export"):
+            if flags.get("Mapper.extract_colors") is not False:
+                for reconstruction in reconstructions:
+                    reconstruction.extract_colors_for_all_images(str(images))
+            write_models(reconstructions, new_output, output_type.upper())
+        summary = summarize(reconstructions, timer, time.perf_counter() - start)
+        summary["clusters"] = [asdict(report) for report in reports]
+        write_json(summary, new_output / "mapper_summary.json")
+    print(format_summary(summary, str(output_path)))
     return {"reconstructions": dict(enumerate(reconstructions)), "summary": summary}

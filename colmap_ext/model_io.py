@@ -1,15 +1,28 @@
-"""Writing COLMAP models the way `colmap mapper` lays them out (OUTPUT/0, OUTPUT/1, ...),
-atomically: models are written to a temporary folder beside the target and renamed
-into place, so an interrupted run never leaves a half-written model where one stood."""
+"""Writing a command's result into its output folder safely, and COLMAP models the way
+`colmap mapper` lays them out (OUTPUT/0, OUTPUT/1, ...).
+
+Every command that writes builds its whole result in a temporary folder beside the
+target (the same file system) and moves it into place at the end (`replacing`): an
+interrupt, a full disk or an error at any moment leaves either the whole previous result
+or the whole new one. `--overwrite` replaces only what the command itself writes,
+recognised by name and content (`OutputLayout`); a lock file keeps a second run out of
+the folder while one writes it.
+"""
 
 from __future__ import annotations
 
 import contextlib
+import errno
+import fcntl
 import json
 import os
+import re
 import shutil
+import signal
 import tempfile
-from collections.abc import Iterator
+import threading
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 
 import pycolmap
@@ -17,39 +30,218 @@ import pycolmap
 from colmap_ext.errors import UserError
 
 OUTPUT_TYPES = ("BIN", "TXT")
+# The lock file of an output folder being written, and the prefix of our temporary folders.
+LOCK_NAME = ".colmap-ext.lock"
+TEMPORARY_PREFIX = ".colmap-ext-"
+# The files of a COLMAP model folder (pycolmap 4 writes rigs and frames; COLMAP's mapper,
+# a project.ini).
+MODEL_FILES = frozenset({f"{name}.{ext}" for ext in ("bin", "txt")
+                         for name in ("cameras", "images", "points3D", "rigs", "frames")}
+                        | {"project.ini"})
 
 
-def check_output_path(output_path: str | Path, overwrite: bool) -> Path:
-    """Refuse a file in the way, or an existing model without `overwrite`."""
+def is_model_folder(path: Path) -> bool:
+    """A COLMAP model: cameras, images and points3D (.bin or .txt), and no other files."""
+    if not path.is_dir() or path.is_symlink():
+        return False
+    names = {entry.name for entry in path.iterdir() if entry.is_file() and not entry.is_symlink()}
+    complete = any({f"cameras.{e}", f"images.{e}", f"points3D.{e}"} <= names
+                   for e in ("bin", "txt"))
+    return complete and names <= MODEL_FILES and len(names) == len(list(path.iterdir()))
+
+
+def holds_only(pattern: str) -> Callable[[Path], bool]:
+    """A folder whose files, in it and below, all have names matching `pattern`."""
+    def recognise(path: Path) -> bool:
+        return path.is_dir() and not path.is_symlink() and all(
+            entry.is_dir() or (entry.is_file() and re.fullmatch(pattern, entry.name))
+            for entry in path.rglob("*"))
+    return recognise
+
+
+def is_file(path: Path) -> bool:
+    return path.is_file() and not path.is_symlink()
+
+
+@dataclass(frozen=True)
+class OutputLayout:
+    """What a command writes into its output folder: `entries`, names with a test that an
+    existing entry of that name is the command's own; `numbered`, the test for numbered
+    entries (model folders). Nothing else in the folder is touched."""
+
+    result: str  # what the folder holds, for messages: "a model"
+    entries: dict[str, Callable[[Path], bool]]
+    numbered: Callable[[Path], bool] | None = None
+
+    def recognise(self, path: Path) -> bool | None:
+        """True: the command's own, replaced by --overwrite; False: the command's name but
+        not its content; None: not the command's."""
+        if self.numbered is not None and path.name.isdigit():
+            return self.numbered(path)
+        test = self.entries.get(path.name)
+        return None if test is None else test(path)
+
+    def is_output(self, path: Path) -> bool:
+        """A folder holding this command's output and nothing else (e.g. a workspace's sparse/)."""
+        return path.is_dir() and not path.is_symlink() and \
+            all(self.recognise(entry) for entry in path.iterdir())
+
+
+MAPPER_OUTPUT = OutputLayout("a model", {"mapper_summary.json": is_file}, numbered=is_model_folder)
+
+
+def _check_output_path(output_path: str | Path) -> Path:
+    """The output folder, refused when empty or a file."""
+    if not str(output_path).strip():
+        raise UserError("the output path is empty")
     output_path = Path(output_path)
     if output_path.exists() and not output_path.is_dir():
         raise UserError(f"output path is a file, not a folder: {output_path}")
-    if (output_path / "0").exists() and not overwrite:
-        raise UserError(f"{output_path / '0'} already holds a model; pass --overwrite to replace it")
-    try:
-        output_path.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:
-        raise UserError(f"cannot create output folder {output_path}: {exc.strerror}") from None
-    try:  # before any work; os.access says yes to root even where no one may write
-        os.rmdir(tempfile.mkdtemp(prefix=".colmap-ext-", dir=output_path))
-    except OSError as exc:
-        raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
     return output_path
 
 
 @contextlib.contextmanager
-def output_folder(output_path: str | Path, overwrite: bool) -> Iterator[Path]:
-    """check_output_path, and a folder it had to create removed again if the work inside
-    fails before writing anything to it."""
-    existed = Path(output_path).exists()
-    output_path = check_output_path(output_path, overwrite)
+def replacing(output_path: str | Path, layout: OutputLayout, overwrite: bool) -> Iterator[Path]:
+    """Yield an empty folder beside `output_path` to build the command's whole result in;
+    when the block ends without an error, its entries replace the command's entries in
+    `output_path` (with `overwrite`; without it, an earlier result is refused before any
+    work). On an error or an interrupt nothing in `output_path` changes, and a folder
+    created for the run is removed again."""
+    output_path = _check_output_path(output_path)
+    created = not output_path.exists()
     try:
-        yield output_path
+        output_path.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create output folder {output_path}: {exc.strerror}") from None
+    try:
+        with _locked(output_path):
+            previous = _previous_result(output_path, layout, overwrite)
+            try:
+                staging = Path(tempfile.mkdtemp(prefix=TEMPORARY_PREFIX, dir=output_path))
+            except OSError as exc:
+                raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
+            try:
+                (staging / "new").mkdir()
+                yield staging / "new"
+            except BaseException:
+                with _signals_deferred():  # a second Ctrl-C does not stop the clean-up
+                    shutil.rmtree(staging, ignore_errors=True)
+                raise
+            with _signals_deferred():
+                try:
+                    _swap_in(staging / "new", output_path, previous, staging / "old")
+                finally:
+                    shutil.rmtree(staging, ignore_errors=True)
     except BaseException:
-        if not existed:
+        if created:
             with contextlib.suppress(OSError):
                 output_path.rmdir()  # only when empty
         raise
+
+
+def moved(path: str | Path, new: Path, final: Path) -> Path:
+    """Where `path` will be once `new`, the folder `replacing` yielded, is moved into
+    `final`: for paths a command records or prints. A path outside `new` stays as it is."""
+    path = Path(path)
+    return final / path.relative_to(new) if path.is_relative_to(new) else path
+
+
+def _previous_result(output_path: Path, layout: OutputLayout, overwrite: bool) -> list[Path]:
+    """The command's entries already in `output_path`: refused without `overwrite`, and
+    refused always when an entry of the command's name is not the command's."""
+    previous = []
+    for entry in sorted(output_path.iterdir()):
+        if entry.name == LOCK_NAME or entry.name.startswith(TEMPORARY_PREFIX):
+            continue
+        ours = layout.recognise(entry)
+        if ours is False:
+            raise UserError(f"{entry} is not {layout.result} written by colmap-ext; it is left "
+                            "alone and the run refused: move it away or choose another output path")
+        if ours:
+            previous.append(entry)
+    if previous and not overwrite:
+        raise UserError(f"{output_path} already holds {layout.result}; pass --overwrite to "
+                        "replace it")
+    return previous
+
+
+@contextlib.contextmanager
+def _locked(output_path: Path) -> Iterator[None]:
+    """Hold the output folder's lock file: another run that tries is refused with the
+    holder's pid. The kernel releases the lock when its process ends, however it ends, so a
+    lock file left by a killed run is taken over."""
+    path = output_path / LOCK_NAME
+    while True:
+        try:
+            fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError as exc:
+            holder = os.read(fd, 32).decode(errors="replace").strip() or "unknown"
+            os.close(fd)
+            if exc.errno not in (errno.EAGAIN, errno.EACCES):
+                raise UserError(f"cannot lock {path}: {exc.strerror}") from None
+            raise UserError(f"{output_path} is being written by another colmap-ext run "
+                            f"(pid {holder})") from None
+        try:  # the holder before us may have removed the file we opened
+            if os.stat(path).st_ino == os.fstat(fd).st_ino:
+                break
+        except FileNotFoundError:
+            pass
+        os.close(fd)
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, f"{os.getpid()}\n".encode())
+        yield
+    finally:
+        with contextlib.suppress(OSError):
+            os.unlink(path)  # while locked: a waiting run then opens a new file
+        os.close(fd)
+
+
+@contextlib.contextmanager
+def _signals_deferred() -> Iterator[None]:
+    """SIGINT and SIGTERM wait until the block is done (only the main thread sets handlers)."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    received: list[int] = []
+    previous = {signum: signal.getsignal(signum) for signum in (signal.SIGINT, signal.SIGTERM)}
+    deferred = [signum for signum, handler in previous.items()
+                if handler not in (None, signal.SIG_IGN)]
+    for signum in deferred:
+        signal.signal(signum, lambda number, frame: received.append(number))
+    try:
+        yield
+    finally:
+        for signum in deferred:
+            signal.signal(signum, previous[signum])
+        for signum in received[:1]:
+            signal.raise_signal(signum)
+
+
+def _swap_in(new: Path, output_path: Path, previous: list[Path], old: Path) -> None:
+    """Move the `previous` entries out to `old`, and the entries of `new` into
+    `output_path`; on failure, put everything back as it was."""
+    old.mkdir()
+    moved_out: list[Path] = []
+    moved_in: list[Path] = []
+    try:
+        for entry in previous:
+            entry.rename(old / entry.name)
+            moved_out.append(entry)
+        for entry in sorted(new.iterdir()):
+            entry.rename(output_path / entry.name)
+            moved_in.append(output_path / entry.name)
+    except OSError as exc:
+        for entry in moved_in:
+            entry.rename(new / entry.name)
+        for entry in moved_out:
+            (old / entry.name).rename(entry)
+        raise UserError(f"could not move the result into {output_path}: {exc.strerror or exc}; "
+                        "the previous result is unchanged") from None
 
 
 def read_model(path: str | Path) -> pycolmap.Reconstruction:
@@ -69,30 +261,22 @@ def read_model(path: str | Path) -> pycolmap.Reconstruction:
 
 def write_models(reconstructions: list[pycolmap.Reconstruction], output_path: str | Path,
                  output_type: str = "BIN") -> None:
-    """Write models as output_path/0, 1, ... replacing any numbered models there."""
+    """Write models as output_path/0, 1, ... into a new folder (`replacing`'s)."""
     output_path = Path(output_path)
     if output_type.upper() not in OUTPUT_TYPES:
         raise UserError(f"--output_type must be BIN or TXT, got {output_type}")
     try:
-        staging = Path(tempfile.mkdtemp(prefix=".colmap-ext-", dir=output_path))
-    except OSError as exc:
-        raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
-    try:
-        new = staging / "new"
         for index, reconstruction in enumerate(reconstructions):
-            folder = new / str(index)
+            folder = output_path / str(index)
             folder.mkdir(parents=True)
             if output_type.upper() == "TXT":
                 reconstruction.write_text(folder)
             else:
                 reconstruction.write_binary(folder)
             _check_written(reconstruction, folder)
-        _swap_in(new, output_path, staging / "old")
     except (OSError, ValueError, RuntimeError) as exc:  # pycolmap: ValueError on a failed open
         raise UserError(f"could not write the model to {output_path}: "
                         f"{getattr(exc, 'strerror', None) or exc}; the previous model is unchanged") from None
-    finally:
-        shutil.rmtree(staging, ignore_errors=True)
 
 
 def _check_written(reconstruction: pycolmap.Reconstruction, folder: Path) -> None:
@@ -108,27 +292,6 @@ def _check_written(reconstruction: pycolmap.Reconstruction, folder: Path) -> Non
         complete = False
     if not complete:
         raise OSError(f"the model written to {folder.name} reads back incomplete (is the disk full?)")
-
-
-def _swap_in(new: Path, output_path: Path, old: Path) -> None:
-    """Move the numbered models in `new` into `output_path`, the previous ones out to
-    `old`; on failure, put everything back as it was."""
-    old.mkdir()
-    moved_out: list[Path] = []
-    moved_in: list[Path] = []
-    try:
-        for previous in sorted(p for p in output_path.iterdir() if p.is_dir() and p.name.isdigit()):
-            previous.rename(old / previous.name)
-            moved_out.append(previous)
-        for folder in sorted(new.iterdir(), key=lambda p: int(p.name)):
-            folder.rename(output_path / folder.name)
-            moved_in.append(output_path / folder.name)
-    except BaseException:  # OSError, or Ctrl-C between two renames
-        for folder in moved_in:
-            shutil.rmtree(folder, ignore_errors=True)
-        for previous in moved_out:
-            (old / previous.name).rename(previous)
-        raise
 
 
 def write_json(data: dict, path: str | Path) -> None:

@@ -2,8 +2,9 @@
 
 The whole method in one command, in a workspace laid out like COLMAP's automatic
 reconstructor: WS/masks/ (with --segment), WS/database.db, WS/sparse/0, 1, ...,
-and WS/reconstruct_summary.json. Every input is checked before any work starts, so
-a wrong camera parameter fails in a second, not after feature extraction.
+and WS/reconstruct_summary.json, built beside WS and moved into it together at the end.
+Every input is checked before any work starts, so a wrong camera parameter fails in a
+second, not after feature extraction.
 """
 
 from __future__ import annotations
@@ -11,8 +12,9 @@ from __future__ import annotations
 import argparse
 import secrets
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from functools import partial
 from pathlib import Path
 
 from colmap_ext import distributed
@@ -27,12 +29,17 @@ from colmap_ext.features import (
 )
 from colmap_ext.mapper import MapperOptions
 from colmap_ext.mapper import run as run_mapper
-from colmap_ext.mapper.flags import boolean
+from colmap_ext.mapper.flags import boolean, random_seed
 from colmap_ext.masks import METHODS, make_masks
 from colmap_ext.matching import MATCHERS, match_features
-from colmap_ext.model_io import OUTPUT_TYPES, check_output_path, write_json
+from colmap_ext.model_io import (MAPPER_OUTPUT, OUTPUT_TYPES, OutputLayout, holds_only,
+                                 is_file, moved, replacing, write_json)
 
 DATABASE_NAME = "database.db"
+WORKSPACE = OutputLayout("a workspace", {
+    DATABASE_NAME: is_file, f"{DATABASE_NAME}-wal": is_file, f"{DATABASE_NAME}-shm": is_file,
+    "sparse": MAPPER_OUTPUT.is_output, "masks": holds_only(r".+\.png"),
+    "reconstruct_summary.json": is_file})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -64,7 +71,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="match descriptors by brute force, not by pycolmap's FAISS "
                              "index (approximate, and rarely not the same twice): the same "
                              "matches on every run and machine, slower on large images")
-    parser.add_argument("--seed", type=int, default=None,
+    parser.add_argument("--seed", type=random_seed, default=None,
                         help="RANSAC seed, for repeatable runs (default: random, recorded "
                              "in the summary)")
     parser.add_argument("--overwrite", action="store_true",
@@ -92,36 +99,45 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
         distributed.check_address(ray_address)
     names, params = check_inputs(image_path, workspace, camera_model, camera_params,
                                  camera_mode, mask_path, segment, min_num_keypoints, matcher,
-                                 overwrite, output_type)
-    with distributed.optional_cluster(ray_address) as cluster:
-        return run_stages(image_path, workspace, camera_model, camera_mode, mask_path, segment,
-                          min_num_keypoints, domain_size_pooling, matcher, exact_matching,
-                          seed, overwrite, output_type, names, params, cluster, start)
+                                 output_type)
+    with replacing(workspace_path, WORKSPACE, overwrite) as new_workspace, \
+            distributed.optional_cluster(ray_address) as cluster:
+        summary = run_stages(
+            image_path, new_workspace, partial(moved, new=new_workspace, final=workspace),
+            camera_model, params, names, seed, start, camera_mode=camera_mode,
+            mask_path=mask_path, segment=segment, min_num_keypoints=min_num_keypoints,
+            domain_size_pooling=domain_size_pooling, matcher=matcher,
+            exact_matching=exact_matching, output_type=output_type, cluster=cluster)
+    print(format_summary(summary, workspace))
+    return summary
 
 
-def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode: str,
-               mask_path: str | None, segment: str | None, min_num_keypoints: int,
-               domain_size_pooling: bool, matcher: str, exact_matching: bool,
-               seed: int | None, overwrite: bool, output_type: str, names: list[str],
-               params: list[float], cluster: distributed.Cluster | None, start: float) -> dict:
-    """The stages of `main` once the inputs are checked; `cluster`: where features and
-    matching run (None: here)."""
+def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str | Path], Path],
+               camera_model: str, params: list[float], names: list[str], seed: int | None,
+               start: float, *, camera_mode: str = "single", mask_path: str | None = None,
+               segment: str | None = None, min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS,
+               domain_size_pooling: bool = False, matcher: str = "auto",
+               exact_matching: bool = False, output_type: str = "BIN",
+               cluster: distributed.Cluster | None = None) -> dict:
+    """The stages of `main` once the inputs are checked, written into `new_workspace`, a
+    folder of model_io.replacing; `shown`: where a path will be once it is moved into place
+    (model_io.moved), for the summary; `cluster`: where features and matching run (None:
+    here)."""
     seed = secrets.randbits(31) if seed is None else seed
-    database_path = workspace / DATABASE_NAME
-    database_path.unlink(missing_ok=True)
+    database_path = new_workspace / DATABASE_NAME
     times: dict[str, float] = {}
     summary: dict = {"inputs": {
-        "image_path": str(image_path), "camera_model": camera_model,
+        "image_path": str(shown(image_path)), "camera_model": camera_model,
         "camera_params": params, "camera_mode": camera_mode,
         "mask_path": mask_path, "segment": segment, "min_num_keypoints": min_num_keypoints,
         "domain_size_pooling": domain_size_pooling, "matcher": matcher,
         "exact_matching": exact_matching, "seed": seed, "num_images": len(names)}}
 
     if segment is not None:
-        mask_path = str(workspace / "masks")
+        mask_path = str(new_workspace / "masks")
         with stage(times, "masks"):
             coverage = make_masks(image_path, mask_path, segment, names)
-        summary["masks"] = {"path": mask_path, "coverage": coverage}
+        summary["masks"] = {"path": str(shown(mask_path)), "coverage": coverage}
     if cluster is None:
         with stage(times, "features"):
             features = extract_features(database_path, image_path, camera_model=camera_model,
@@ -142,23 +158,21 @@ def run_stages(image_path: str, workspace: Path, camera_model: str, camera_mode:
     times["verification"] = matching.verification_seconds
     summary["matching"] = matching.to_dict()
     with stage(times, "mapper"):
-        models = run_mapper(database_path, image_path, workspace / "sparse",
-                            MapperOptions(seed=seed), overwrite=overwrite,
-                            output_type=output_type.upper())
-    summary["models"] = [{"path": str(workspace / "sparse" / str(index)),
+        models = run_mapper(database_path, image_path, new_workspace / "sparse",
+                            MapperOptions(seed=seed), output_type=output_type.upper())
+    summary["models"] = [{"path": str(shown(new_workspace / "sparse" / str(index))),
                           "num_registered": model.num_reg_images(),
                           "num_points3D": model.num_points3D()}
                          for index, model in models.items()]
     times["total"] = time.perf_counter() - start
     summary["time_s"] = {name: round(seconds, 3) for name, seconds in times.items()}
-    write_json(summary, workspace / "reconstruct_summary.json")
-    print(format_summary(summary, workspace))
+    write_json(summary, new_workspace / "reconstruct_summary.json")
     return summary
 
 
 def check_inputs(image_path: str, workspace: Path, camera_model: str, camera_params: str,
                  camera_mode: str, mask_path: str | None, segment: str | None,
-                 min_num_keypoints: int, matcher: str, overwrite: bool,
+                 min_num_keypoints: int, matcher: str,
                  output_type: str) -> tuple[list[str], list[float]]:
     """Every check that can fail, before any work; returns the image names and the
     camera parameters."""
@@ -177,10 +191,6 @@ def check_inputs(image_path: str, workspace: Path, camera_model: str, camera_par
     check_images(image_path, names, camera_mode, camera_model, params, mask_path)
     if workspace.exists() and not workspace.is_dir():
         raise UserError(f"workspace path is a file, not a folder: {workspace}")
-    if (workspace / DATABASE_NAME).exists() and not overwrite:
-        raise UserError(f"{workspace / DATABASE_NAME} exists from an earlier run; pass "
-                        "--overwrite to replace it")
-    check_output_path(workspace / "sparse", overwrite)
     return names, params
 
 

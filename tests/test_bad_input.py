@@ -3,6 +3,10 @@ subprocess and checks the exit code, one clear line on stderr, no traceback, and
 every input (and any previous model) is byte for byte what it was, with no stray files
 (e.g. SQLite `-wal`/`-shm` files beside a database) and no temporary folders left.
 
+An interrupted run (exit 130 or 143: `interrupted(marker, signal)` sends the signal once a
+stage has begun) may print the stage's own log lines first; its last line is the one
+message, and no stack dump follows. Inputs and the previous result stay byte for byte.
+
 To add a case, write a builder under `@case(...)`: it makes the inputs in `env.inputs`
 (hashed before and after the run) and returns the command's arguments.
 """
@@ -37,6 +41,8 @@ IS_ROOT = os.geteuid() == 0
 # tqdm's bars: "registered:  50%|#####     | 3/6 [00:01<00:01, ...]", "pairs: 0pair [00:00, ...]"
 PROGRESS_LINE = re.compile(r"\d+%\||\[\d+:\d\d[<,\]]")
 TEMP_PREFIXES = (".colmap-ext-", "colmap-ext-")
+INTERRUPTED_CODES = (128 + signal.SIGINT, 128 + signal.SIGTERM)
+RING_PARAMS = [300.0, 300.0, 160.0, 120.0]  # PINHOLE, the rendered ring's camera
 
 
 # ---------------------------------------------------------------- shared inputs
@@ -109,6 +115,30 @@ class Assets:
         path = self.root / "small_par.txt"
         write_par_file(self.scenes["small"], path)
         return path
+
+    @cached_property
+    def ring(self) -> tuple[Path, Path]:
+        """10 rendered 320x240 views of the ring scene (`reconstruct` takes about 6 s) and
+        their ground truth (Middlebury *_par.txt)."""
+        import pycolmap
+
+        from colmap_ext.synthetic.render import render_images, write_par_file
+        from colmap_ext.synthetic.scene import ring_scene
+
+        camera = pycolmap.Camera(camera_id=1, model="PINHOLE", width=320, height=240,
+                                 params=RING_PARAMS)
+        scene = ring_scene(num_images=10, seed=0, camera=camera)
+        render_images(scene, self.root / "ring", supersample=1)
+        write_par_file(scene, self.root / "ring_par.txt")
+        return self.root / "ring", self.root / "ring_par.txt"
+
+    @cached_property
+    def workspace(self) -> Path:
+        """WS/ of `reconstruct` on `ring`: database.db, sparse/0 ..., reconstruct_summary.json."""
+        from colmap_ext.reconstruct import main
+
+        main(self.ring[0], self.root / "workspace", "PINHOLE", ",".join(map(str, RING_PARAMS)), seed=0)
+        return self.root / "workspace"
 
     @cached_property
     def colmap38(self) -> tuple[Path, Path, str]:
@@ -512,6 +542,154 @@ def _(env):
     return env.mapper(crashed / "database.db")
 
 
+# Issue 33, defects 8 and 9: values that gave a traceback, or a wrong result in silence.
+
+
+def edit_blob(database: Path, table: str, key: str, edit: Callable[[np.ndarray, int], tuple],
+              dtype: type = np.float32) -> Path:
+    """Rewrite the first row of `table` (keyed by `key`): edit(array of rows x cols, cols)
+    gives the new (rows, cols, data)."""
+    with closing(sqlite3.connect(database)) as conn:
+        row_id, rows, cols, data = conn.execute(
+            f"SELECT {key}, rows, cols, data FROM {table} WHERE rows > 0 ORDER BY {key} LIMIT 1"
+        ).fetchone()
+        rows, cols, data = edit(np.frombuffer(data, dtype).reshape(rows, cols).copy(), cols)
+        conn.execute(f"UPDATE {table} SET rows = ?, cols = ?, data = ? WHERE {key} = ?",
+                     (rows, cols, data, row_id))
+        conn.commit()
+    return database
+
+
+def _set_first(value: float) -> Callable[[np.ndarray, int], tuple]:
+    def edit(array, cols):
+        array[0, 0] = value
+        return len(array), cols, array.tobytes()
+    return edit
+
+
+@case("db_keypoint_nan", "are not all finite numbers")
+def _(env):
+    return env.mapper(edit_blob(env.small_db(), "keypoints", "image_id", _set_first(np.nan)))
+
+
+@case("db_keypoint_inf", "are not all finite numbers")
+def _(env):
+    return env.mapper(edit_blob(env.small_db(), "keypoints", "image_id", _set_first(np.inf)))
+
+
+@case("db_keypoints_blob_short", "rows of 2, 4 or 6 4-byte numbers")
+def _(env):
+    return env.mapper(edit_blob(env.small_db(), "keypoints", "image_id",
+                                lambda a, cols: (len(a), cols, a.tobytes()[:-4])))
+
+
+@case("db_matches_blob_long", "expected 1 rows of 2 keypoint indices")
+def _(env):
+    return env.mapper(edit_blob(env.small_db(), "matches", "pair_id",
+                                lambda a, cols: (1, cols, a.tobytes()), np.uint32))
+
+
+@case("db_matches_three_columns", "expected 2 rows of 2 keypoint indices")
+def _(env):
+    return env.mapper(edit_blob(env.small_db(), "matches", "pair_id",
+                                lambda a, cols: (2, 3, a[:3].tobytes()), np.uint32))
+
+
+def verified_db(env) -> Path:
+    """The small database with its matches also as verified (calibrated) two-view
+    geometries, each with F, E, H, qvec and tvec blobs of their sizes."""
+    identity, rotation, translation = np.eye(3).tobytes(), np.array([1.0, 0, 0, 0]).tobytes(), \
+        np.array([0.0, 0, 1]).tobytes()
+    return edit_database(env.small_db(), (
+        "INSERT INTO two_view_geometries (pair_id, rows, cols, data, config, F, E, H, qvec, tvec) "
+        "SELECT pair_id, rows, cols, data, 2, ?, ?, ?, ?, ? FROM matches",
+        (identity, identity, identity, rotation, translation)))
+
+
+@case("db_verified_matches_blob_short", "two_view_geometries of images")
+def _(env):
+    return env.mapper(edit_blob(verified_db(env), "two_view_geometries", "pair_id",
+                                lambda a, cols: (len(a), cols, a.tobytes()[:-4]), np.uint32))
+
+
+@case("db_fundamental_matrix_blob_short", "F holds 64 bytes; expected 72")
+def _(env):
+    return env.mapper(edit_database(verified_db(env), "UPDATE two_view_geometries SET F = zeroblob(64)"))
+
+
+@case("db_essential_matrix_blob_long", "E holds 80 bytes; expected 72")
+def _(env):
+    return env.mapper(edit_database(verified_db(env), "UPDATE two_view_geometries SET E = zeroblob(80)"))
+
+
+def _with_focal_length(env, focal_length: float) -> Path:
+    database = env.small_db()
+    with closing(sqlite3.connect(database)) as conn:
+        params = np.frombuffer(conn.execute("SELECT params FROM cameras").fetchone()[0]).copy()
+    params[:2] = focal_length
+    return edit_database(database, ("UPDATE cameras SET params = ?", (params.tobytes(),)))
+
+
+@case("db_focal_length_zero", "has focal length 0, 0; expected a positive one")
+def _(env):
+    return env.mapper(_with_focal_length(env, 0.0))
+
+
+@case("db_focal_length_negative", "has focal length -600, -600; expected a positive one")
+def _(env):
+    return env.mapper(_with_focal_length(env, -600.0))
+
+
+@case("db_match_index_all_ones", "refer to keypoints that do not exist")
+def _(env):
+    """0xFFFFFFFF was read as -1: the image's last keypoint."""
+    def last_index_all_ones(array, cols):
+        array[0, 1] = 0xFFFFFFFF
+        return len(array), cols, array.tobytes()
+    return env.mapper(edit_blob(env.small_db(), "matches", "pair_id", last_index_all_ones,
+                                np.uint32))
+
+
+@case("db_negative_image_size", "has an image size of -5 x -5; expected positive integers")
+def _(env):
+    """Mapped with exit 0, and cameras.bin said 18446744073709551611."""
+    return env.mapper(edit_database(env.small_db(), "UPDATE cameras SET width = -5, height = -5"))
+
+
+@case("flag_threshold_infinite", "--Mapper.init_max_error: expected a finite number", code=2)
+def _(env):
+    return env.mapper(env.small_db(), None, None, "--Mapper.init_max_error", "inf")
+
+
+@case("flag_threads_beyond_int32", "--num_threads: expected an integer from", code=2)
+def _(env):
+    return env.mapper(env.small_db(), None, None, "--Mapper.num_threads", str(2**31))
+
+
+@case("flag_iterations_beyond_int32", "--Mapper.ba_global_max_num_iterations: expected an integer",
+      code=2)
+def _(env):
+    return env.mapper(env.small_db(), None, None, "--Mapper.ba_global_max_num_iterations",
+                      str(2**40))
+
+
+@case("flag_seed_beyond_64_bits", "--seed: expected an integer from", code=2)
+def _(env):
+    return env.mapper(env.small_db(), None, None, "--seed", str(2**64))
+
+
+@case("image_list_binary", "is not text")
+def _(env):
+    (env.inputs / "list.txt").write_bytes(bytes(range(256)))
+    return env.mapper(env.small_db(), None, None, "--image_list_path", str(env.inputs / "list.txt"))
+
+
+@case("models_below_min_model_size", "1 model was reconstructed, all below --Mapper.min_model_size 20")
+def _(env):
+    """Issue 33, defect 10: said "no image pair gave a relative pose"."""
+    return env.mapper(env.small_db(), None, None, "--seed", "0", "--Mapper.min_model_size", "20")
+
+
 @case("db_pycolmap4_positive_control", "Registered 6 images in 1 model", code=0)
 def _(env):
     return env.mapper(env.small_db(), None, None, "--seed", "0")
@@ -693,37 +871,134 @@ def _(env):
     return env.mapper(env.small_db(), None, None, "--overwrite", "--seed", "0")
 
 
-def _run_interrupted(env, args):
-    """Start mapping, press Ctrl-C once images are being registered. The child gets
-    Ctrl-C's default action, as in a terminal: started from a background job (`make test &`),
-    it would inherit SIGINT ignored, and Python then never raises KeyboardInterrupt."""
-    with open(env.root / "stdout.txt", "w+") as stdout:
-        process = subprocess.Popen([*CLI, *args], stdout=stdout, stderr=subprocess.PIPE,
-                                   text=True, env=child_env(env), cwd=env.root,
-                                   preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
-        stderr: list[str] = []
-        reader = threading.Thread(target=lambda: stderr.extend(iter(lambda: process.stderr.read(1), "")))
-        reader.start()
-        deadline = time.monotonic() + 60
-        while "registered:" not in "".join(stderr) and process.poll() is None \
+class Running:
+    """A CLI run in the background, its stderr read as it comes. The child gets Ctrl-C's
+    default action, as in a terminal: started from a background job (`make test &`), it
+    would inherit SIGINT ignored, and Python then never raises KeyboardInterrupt."""
+
+    def __init__(self, env: Env, args: list[str]) -> None:
+        self.stdout = open(env.root / f"stdout-{len(list(env.root.glob('stdout-*')))}.txt", "w+")
+        self.process = subprocess.Popen(
+            [*CLI, *args], stdout=self.stdout, stderr=subprocess.PIPE, env=child_env(env),
+            cwd=env.root, preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+        self.chunks: list[bytes] = []  # what stderr has said so far, as it comes
+        fd = self.process.stderr.fileno()
+        self.reader = threading.Thread(
+            target=lambda: self.chunks.extend(iter(lambda: os.read(fd, 65536), b"")))
+        self.reader.start()
+
+    @property
+    def stderr(self) -> str:
+        return b"".join(self.chunks).decode(errors="replace")
+
+    def wait_for(self, marker: str) -> bool:
+        """Wait until `marker` is on stderr; True if the run is still going then."""
+        deadline = time.monotonic() + 120
+        while marker not in self.stderr and self.process.poll() is None \
                 and time.monotonic() < deadline:
-            time.sleep(0.05)
-        time.sleep(0.05)
-        running = process.poll() is None
-        process.send_signal(signal.SIGINT)
-        process.wait(timeout=60)
-        reader.join()
-        stdout.seek(0)
-        result = subprocess.CompletedProcess(process.args, process.returncode, stdout.read(), "".join(stderr))
-    assert running, f"the mapper finished before it could be interrupted\n{result.stderr}"
-    return result
+            time.sleep(0.01)
+        return self.process.poll() is None
+
+    def result(self) -> subprocess.CompletedProcess:
+        self.process.wait(timeout=120)
+        self.reader.join()
+        self.stdout.seek(0)
+        result = subprocess.CompletedProcess(self.process.args, self.process.returncode,
+                                             self.stdout.read(), self.stderr)
+        self.stdout.close()
+        self.process.stderr.close()
+        return result
 
 
-@case("ctrl_c_while_mapping", "interrupted", code=130, run=_run_interrupted)
+def interrupted(marker: str, signum: int = signal.SIGINT, delay: float = 0.05) -> Callable:
+    """A runner that sends `signum` `delay` seconds after `marker` appears on stderr (a
+    stage has begun; "": after the start)."""
+    def run(env: Env, args: list[str]) -> subprocess.CompletedProcess:
+        running = Running(env, args)
+        still_running = running.wait_for(marker)
+        time.sleep(delay)
+        running.process.send_signal(signum)
+        result = running.result()
+        assert still_running, f"the run finished before {marker!r}: nothing to interrupt\n{result.stderr}"
+        return result
+    return run
+
+
+@case("ctrl_c_while_mapping", "interrupted by SIGINT", code=130, run=interrupted("registered:"))
 def _(env):
     database, images, _ = env.assets.big
     env.previous_model()
     return env.mapper(env.copy(database), env.copy(images), None, "--overwrite", "--seed", "0")
+
+
+@case("sigterm_while_mapping", "interrupted by SIGTERM", code=143,
+      run=interrupted("registered:", signal.SIGTERM))
+def _(env):
+    """Issue 33, defect 6: glog's handler printed a stack dump, and the private copy of
+    the database stayed in TMPDIR (the harness checks TMPDIR is empty)."""
+    database, images, _ = env.assets.big
+    env.previous_model()
+    return env.mapper(env.copy(database), env.copy(images), None, "--overwrite", "--seed", "0")
+
+
+def _run_beside_a_running_mapper(env, args):
+    """Start a mapper on the big scene into OUT, and run `args` (a second mapper into the
+    same OUT) while the first one registers images. The first finishes with its model."""
+    import pycolmap
+
+    first = Running(env, env.mapper(env.inputs / "big.db", env.inputs / "big_images", None,
+                                    "--seed", "0"))
+    assert first.wait_for("registered:"), "the first mapper finished before the second started"
+    second = run_cli(env, args)
+    finished = first.result()
+    assert finished.returncode == 0, finished.stderr
+    assert pycolmap.Reconstruction(env.out / "0").num_reg_images() > 6, "not the first run's model"
+    return second
+
+
+@case("two_mappers_into_one_output", "is being written by another colmap-ext run (pid",
+      run=_run_beside_a_running_mapper)
+def _(env):
+    """Issue 33, defect 7: both runs exited 0 and the later replaced the earlier's model."""
+    database, images, _ = env.assets.big
+    env.copy(database, "big.db")
+    env.copy(images, "big_images")
+    return env.mapper(env.small_db(), None, None, "--seed", "0")
+
+
+@case("overwrite_keeps_numbered_folders_that_are_no_models", "/2024 is not a model written by")
+def _(env):
+    """Issue 33, defect 2: --overwrite deleted every folder whose name is digits."""
+    out = env.previous_model()
+    (out / "2024").mkdir()
+    (out / "2024" / "notes.txt").write_text("my notes\n")
+    (out / "7").mkdir()
+    (out / "7" / "IMG_0002.JPG").write_bytes(b"\xff\xd8 a photo")
+    return env.mapper(env.small_db(), None, None, "--overwrite")
+
+
+def _lock_released(env, result):
+    assert sorted(p.name for p in env.out.iterdir()) == ["0", "mapper_summary.json"], \
+        "the lock file was not removed"
+
+
+@case("stale_lock_is_taken_over", "Registered 6 images", code=0, after=_lock_released)
+def _(env):
+    """A lock file left by a killed run (its pid long gone) does not keep the folder locked."""
+    env.out.mkdir()
+    (env.out / ".colmap-ext.lock").write_text("999999999\n")
+    return env.mapper(env.small_db(), None, None, "--seed", "0")
+
+
+def _nothing_in_the_working_folder(env, result):
+    written = {p.name for p in env.root.iterdir()} - {"home", "in", "out", "tmp"}
+    assert not written, f"the run wrote {written} into its working folder"
+
+
+@case("output_path_empty", "the output path is empty", after=_nothing_in_the_working_folder)
+def _(env):
+    """Issue 33, defect 5: `--output_path ""` wrote ./0, then failed with a traceback."""
+    return env.mapper(env.small_db(), None, "")
 
 
 # ---- evaluate
@@ -936,10 +1211,33 @@ def _(env):
 
 @case("demo_already_there", "already holds a demo; pass --overwrite", command="demo")
 def _(env):
-    (env.out / "workspace" / "sparse" / "0").mkdir(parents=True)
-    (env.out / "workspace" / "sparse" / "0" / "images.bin").write_bytes(b"an earlier demo")
+    shutil.copytree(env.assets.model, env.out / "workspace" / "sparse")  # an earlier demo's
     env.protected.append(env.out)
     return ["demo", "--output_path", str(env.out)]
+
+
+@case("demo_overwrite_keeps_the_users_files", "is not a demo written by colmap-ext", command="demo")
+def _(env):
+    """Issue 33, defect 1: --overwrite removed images/ and ground_truth/ whole, the
+    user's files in them included."""
+    shutil.copytree(env.assets.model, env.out / "workspace" / "sparse")  # an earlier demo's
+    (env.out / "images").mkdir()
+    (env.out / "images" / "holiday.jpg").write_bytes(b"\xff\xd8 the user's photo")
+    (env.out / "ground_truth").mkdir()
+    (env.out / "ground_truth" / "notes.txt").write_text("the user's notes\n")
+    env.protected.append(env.out)
+    return ["demo", "--output_path", str(env.out), "--overwrite", "--num_images", "3"]
+
+
+@case("demo_seed_negative", "--seed: expected a seed from 0", code=2, command="demo")
+def _(env):
+    return ["demo", "--output_path", str(env.out), "--seed", "-5"]
+
+
+@case("demo_too_many_images", "--num_images must be at least 3 and at most 1000", command="demo")
+def _(env):
+    """Issue 33, defect 11: rendered on until memory ran out (7.6 GB after 400 s)."""
+    return ["demo", "--output_path", str(env.out), "--num_images", "100000000"]
 
 
 # ---- compare (our mapper and COLMAP's on one database)
@@ -975,6 +1273,36 @@ def _(env):
     return _compare(env)
 
 
+def _compare_over_a_comparison(env, database: Path, images: Path, *extra: str) -> list[str]:
+    """compare --overwrite over the output of an earlier comparison."""
+    for mapper in ("ours", "colmap_incremental"):
+        shutil.copytree(env.assets.model, env.out / mapper)
+    (env.out / "report.json").write_text('{"an earlier": "comparison"}\n')
+    (env.out / "report.md").write_text("# an earlier comparison\n")
+    env.protected.append(env.out)
+    return ["compare", "--database_path", str(env.copy(database)), "--image_path",
+            str(env.copy(images, "images")), "--output_path", str(env.out), "--overwrite",
+            "--seed", "0", *extra]
+
+
+# Issue 33, defect 4: an interrupt could leave ours/0 of the new run beside the old report.
+@case("compare_ctrl_c_in_the_second_mapper", "interrupted by SIGINT", code=130,
+      command="compare", run=interrupted("[2/3] colmap_incremental", delay=0.0))
+def _(env):
+    """On the rendered ring's database, from which COLMAP's mappers register images, with
+    its ground truth: evaluating and plotting keep the run going after the mappers."""
+    images, truth = env.assets.ring
+    return _compare_over_a_comparison(env, env.assets.workspace / "database.db", images,
+                                      "--ground_truth", str(env.copy(truth)))
+
+
+@case("compare_sigterm_in_our_mapper", "interrupted by SIGTERM", code=143, command="compare",
+      run=interrupted("registered:", signal.SIGTERM))
+def _(env):
+    database, images, _ = env.assets.big
+    return _compare_over_a_comparison(env, database, images)
+
+
 # ---- Ray and hierarchical_mapper
 
 
@@ -1001,6 +1329,35 @@ def _(env):
     shutil.copyfile(env.assets.small[0], env.out / "database.db")
     env.protected.append(env.out)
     return args
+
+
+def _reconstruct_over_a_workspace(env) -> list[str]:
+    """reconstruct --overwrite on the rendered ring, over the workspace of an earlier run."""
+    shutil.copytree(env.assets.workspace, env.out)
+    env.protected.append(env.out)
+    return ["reconstruct", "--image_path", str(env.copy(env.assets.ring[0], "images")),
+            "--workspace_path", str(env.out), "--camera_model", "PINHOLE",
+            "--camera_params", ",".join(map(str, RING_PARAMS)), "--seed", "0", "--overwrite"]
+
+
+# Issue 33, defect 3: an interrupt replaced WS/database.db with a partial one while the
+# old sparse/0 stayed. Now each moment leaves the earlier workspace whole.
+@case("reconstruct_ctrl_c_while_extracting", "interrupted by SIGINT", code=130,
+      command="reconstruct", run=interrupted("", delay=2.5))
+def _(env):
+    return _reconstruct_over_a_workspace(env)
+
+
+@case("reconstruct_sigterm_while_verifying", "interrupted by SIGTERM", code=143,
+      command="reconstruct", run=interrupted("verify pairs", signal.SIGTERM, delay=0.0))
+def _(env):
+    return _reconstruct_over_a_workspace(env)
+
+
+@case("reconstruct_ctrl_c_while_mapping", "interrupted by SIGINT", code=130,
+      command="reconstruct", run=interrupted("registered:"))
+def _(env):
+    return _reconstruct_over_a_workspace(env)
 
 
 @case("reconstruct_ray_address_malformed", "--ray_address must be auto, local or HOST:PORT",
@@ -1162,6 +1519,9 @@ def check(case: Case, env: Env, result: subprocess.CompletedProcess, before: dic
     lines = message_lines(result.stderr)
     if case.code == 0:
         assert case.message in result.stdout, said
+    elif case.code in INTERRUPTED_CODES:  # the stage's own log lines, then one line, no stack dump
+        assert "stack trace" not in result.stderr and "*** " not in result.stderr, said
+        assert lines[-1].startswith("colmap-ext: ") and case.message in lines[-1], said
     elif case.code == 2:  # a command-line error: one line, as COLMAP's
         assert len(lines) == 1, f"expected one line on stderr\n{said}"
         assert lines[0].startswith("colmap-ext ") and case.message in lines[0], said

@@ -74,7 +74,7 @@ def test_an_earlier_database_needs_overwrite(images: Path, tmp_path: Path) -> No
     workspace = tmp_path / "ws"
     workspace.mkdir()
     (workspace / "database.db").write_bytes(b"")
-    with pytest.raises(UserError, match="database.db exists from an earlier run; pass --overwrite"):
+    with pytest.raises(UserError, match="already holds a workspace; pass --overwrite"):
         main(images, workspace, "OPENCV", PARAMS)
 
 

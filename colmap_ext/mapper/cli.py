@@ -72,6 +72,9 @@ def _read_image_list(path: str | None) -> list[str] | None:
             names = [line.strip() for line in f if line.strip()]
     except OSError as exc:
         raise UserError(f"cannot read image list {path}: {exc.strerror}") from None
+    except UnicodeDecodeError:
+        raise UserError(f"image list {path} is not text: expected one image name per "
+                        "line") from None
     if not names:
         raise UserError(f"image list {path} is empty")
     return names

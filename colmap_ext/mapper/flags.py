@@ -10,8 +10,10 @@ accepted, and a value other than its default is named once in the log with the r
 
 from __future__ import annotations
 
+import argparse
 import copy
 import logging
+import math
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -33,6 +35,36 @@ def boolean(text: str) -> bool:
     value = {"1": True, "true": True, "0": False, "false": False}.get(text.strip().lower())
     if value is None:
         raise ValueError(f"expected 0, 1, true or false, got {text!r}")
+    return value
+
+
+# What the library underneath takes for an integer option (a C int: threads, iterations, the seed).
+INT32_RANGE = (-2**31, 2**31 - 1)
+
+
+def int32(text: str) -> int:
+    """An integer within a C int."""
+    value = int(text)
+    low, high = INT32_RANGE
+    if not low <= value <= high:
+        raise argparse.ArgumentTypeError(f"expected an integer from {low} to {high}, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """A number, neither infinite nor NaN (thresholds and ratios)."""
+    value = float(text)
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def random_seed(text: str) -> int:
+    """A RANSAC seed: 0 to the largest C int (pycolmap's random_seed)."""
+    value = int32(text)
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a seed from 0 to {INT32_RANGE[1]}, "
+                                         f"got {text!r}")
     return value
 
 
@@ -89,7 +121,7 @@ class Flag:
     @property
     def parse(self) -> Callable[[str], Any]:
         """The option's value from its text (command line or project file)."""
-        return boolean if self.type is bool else self.type
+        return {bool: boolean, int: int32, float: finite_float}.get(self.type, self.type)
 
 
 # Options that refine the intrinsics; off unless asked for on the command line or in
@@ -375,7 +407,7 @@ def read_project(path: str | Path) -> tuple[dict[str, Any], dict[str, str]]:
             raise UserError(f"{where}: unrecognised option '{name}'")
         try:
             values[name] = flag.parse(text)
-        except ValueError:
+        except (ValueError, argparse.ArgumentTypeError):
             raise UserError(f"{where}: invalid value '{text}' for option '{name}'") from None
     return values, paths
 

@@ -29,7 +29,7 @@ from colmap_ext.mapper.registration import (Outcome, descriptor_correspondences,
                                             register_image, track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
-from colmap_ext.model_io import output_folder, read_model, write_json, write_models
+from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
 
 
 # Images tried per round before the mapper gives up on growing the model.
@@ -352,6 +352,8 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
                 break
             if model.num_registered >= options.min_model_size:
                 models.append(model)
+            else:
+                timer.counts["models below min_model_size"] += 1
             remaining = [i for i in remaining if i not in model.poses]
             model = Model(db, nearest, remaining)
             options = options.choosing_initial_pair()
@@ -365,6 +367,8 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     with timer("filtering"):
         for model in models:
             filter_images(model, options)
+    timer.counts["models below min_model_size"] += sum(
+        m.num_registered < options.min_model_size for m in models)
     models = [m for m in models if m.num_registered >= options.min_model_size]
     with timer("export"):
         reconstructions = [export(model) for model in models]
@@ -477,7 +481,7 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
     if not image_path.is_dir():
         raise UserError(f"image path not found: {image_path}")
     existing = _read_input_model(input_path, output_path) if input_path else None
-    with output_folder(output_path, overwrite) as output_path:
+    with replacing(output_path, MAPPER_OUTPUT, overwrite) as new_output:
         timer = StageTimer()
         start = time.perf_counter()
         with timer("read database"):
@@ -485,16 +489,24 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
         _check_images(db, image_path)
         reconstructions = reconstruct(db, options, image_names, timer, progress, existing)
         if not reconstructions:
-            raise UserError("no model could be reconstructed: no image pair gave a relative pose "
-                            "with enough well-triangulated points")
+            raise UserError(f"no model could be reconstructed: {_why_none(timer, options)}")
         with timer("export"):
             if options.extract_colors:
                 for reconstruction in reconstructions:
                     reconstruction.extract_colors_for_all_images(str(image_path))
-            write_models(reconstructions, output_path, output_type)
+            write_models(reconstructions, new_output, output_type)
         summary = summarize(reconstructions, timer, time.perf_counter() - start)
-        write_json(summary, output_path / "mapper_summary.json")
+        write_json(summary, new_output / "mapper_summary.json")
     return dict(enumerate(reconstructions))
+
+
+def _why_none(timer: StageTimer, options: MapperOptions) -> str:
+    """Why `reconstruct` returned no model: models too small to keep, or none at all."""
+    dropped = timer.counts["models below min_model_size"]
+    if dropped:
+        return (f"{dropped} model{'s were' if dropped > 1 else ' was'} reconstructed, all below "
+                f"--Mapper.min_model_size {options.min_model_size}")
+    return "no image pair gave a relative pose with enough well-triangulated points"
 
 
 def _read_input_model(input_path: str | Path, output_path: str | Path) -> pycolmap.Reconstruction:
