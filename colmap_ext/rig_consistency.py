@@ -1,6 +1,6 @@
-"""How well a model keeps a camera rig: for every two registered images of one frame, their
-relative pose in the model against the one the rig fixes (sensor_b_from_rig *
-sensor_a_from_rig^-1).
+"""How well a model keeps a camera rig: for every two registered images a, b of one frame (b
+after a by name), their relative pose cam_b_from_cam_a in the model against the one the rig
+fixes (sensor_b_from_rig * sensor_a_from_rig^-1).
 
 The rig comes from the model's own rigs and frames, from a database's (as `colmap
 rig_configurator` or `apply_rig_config` wrote them), or from a rig configuration JSON (frames
@@ -13,12 +13,14 @@ translation deviations are in the rig's unit.
 from __future__ import annotations
 
 import itertools
+import os
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from colmap_ext.angles import rotation_angles_deg
+from colmap_ext.rigs import read_rig_config
 
 # A frame: image name -> sensor_from_rig of its camera.
 RigFrame = dict[str, pycolmap.Rigid3d]
@@ -75,6 +77,15 @@ def config_rig_frames(configs: list[pycolmap.RigConfig],
     return result
 
 
+def rig_frames_of(reconstruction: pycolmap.Reconstruction,
+                  rig_config: str | os.PathLike | None = None) -> dict[str, RigFrame]:
+    """The frames of a rig configuration JSON, if given, else the model's own."""
+    if rig_config is None:
+        return model_rig_frames(reconstruction)
+    return config_rig_frames(read_rig_config(rig_config),
+                             [image.name for image in reconstruction.images.values()])
+
+
 def rig_consistency(reconstruction: pycolmap.Reconstruction,
                     frames: dict[str, RigFrame]) -> dict | None:
     """The largest rotation (deg) and translation deviation of the model's relative poses
@@ -84,7 +95,7 @@ def rig_consistency(reconstruction: pycolmap.Reconstruction,
                        for image in reconstruction.images.values() if image.has_pose}
     pairs = []  # (frame, model's cam_b_from_cam_a, rig's)
     for key, members in frames.items():
-        names = [name for name in members if name in cams_from_world]
+        names = sorted(name for name in members if name in cams_from_world)
         for a, b in itertools.combinations(names, 2):
             pairs.append((key, cams_from_world[b] * cams_from_world[a].inverse(),
                           members[b] * members[a].inverse()))
