@@ -23,7 +23,7 @@ import argparse
 import json
 import os
 from dataclasses import dataclass
-from pathlib import Path, PurePosixPath
+from pathlib import Path
 
 import numpy as np
 import pycolmap
@@ -232,12 +232,3 @@ def apply_rig_config(database_path: str | os.PathLike,
                         db.update_image(image)
         pycolmap.apply_rig_config(configs, db)
 
-
-def image_prefix_of(name: str, prefixes: list[str]) -> str | None:
-    """The prefix among `prefixes` that `name` starts with (None if none does)."""
-    return next((prefix for prefix in prefixes if name.startswith(prefix)), None)
-
-
-def frame_name(name: str, prefix: str) -> str:
-    """The frame key of image `name` under camera `prefix`: the name after the prefix."""
-    return str(PurePosixPath(name[len(prefix):]))

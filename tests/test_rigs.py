@@ -117,6 +117,17 @@ def test_several_camchains_need_the_imu_to_link_them(tmp_path: Path) -> None:
         rigs.read_kalibr_rig([first, second])
 
 
+def test_hilti_rigs_kalibr_files_agree_with_its_stereo_pairs_chain(real_data: Path) -> None:
+    """hilti_rig: five cameras in four camchain-imucam files; cam1's place from the IMU
+    equals its T_cn_cnm1 from cam0 (Kalibr's stereo calibration, 10.8 cm)."""
+    calibration = real_data / "hilti_rig" / "calibration"
+    files = sorted(calibration.glob("calib_3_cam*-camchain-imucam.yaml"))
+    cameras = rigs.read_kalibr_rig(files)
+    assert [camera.model for camera in cameras] == ["OPENCV_FISHEYE"] * 5
+    stereo = yaml.safe_load(files[0].read_text())["cam1"]["T_cn_cnm1"]
+    np.testing.assert_allclose(cameras[1].cam_from_rig.matrix(), np.array(stereo)[:3], atol=1e-6)
+
+
 @pytest.fixture(scope="module")
 def synthetic_rigs() -> pycolmap.Reconstruction:
     """COLMAP's generator: 2 rigs of 3 cameras, 3 frames each (the true model)."""
