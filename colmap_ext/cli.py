@@ -31,6 +31,9 @@ COMMANDS: dict[str, tuple[str, str]] = {
                  "(the paper's R_err, T_err, C_err)."),
     "compare": ("colmap_ext.compare", "Run our mapper and COLMAP's on copies of one database "
                 "and compare them (with ground truth: their errors)."),
+    "rig_config_from_kalibr": ("colmap_ext.rigs", "Write COLMAP's rig configuration JSON "
+                               "(for `reconstruct --rig_config`, `colmap rig_configurator`) "
+                               "from Kalibr camchain YAML files."),
     "demo": ("colmap_ext.demo", "Render a synthetic ring scene, reconstruct it and "
              "measure the result."),
 }

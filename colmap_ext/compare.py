@@ -50,6 +50,7 @@ from colmap_ext.database import check_database_file, copy_database
 from colmap_ext.errors import UserError
 from colmap_ext.features import quiet_colmap_logs
 from colmap_ext.evaluate import MEASURES, evaluate, summary_key
+from colmap_ext.rig_consistency import database_rig_frames, rig_consistency
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper import MapperOptions
 from colmap_ext.mapper import run as run_ours
@@ -317,6 +318,7 @@ def _compare(source: Path, num_images: int, database_path: Path, image_path: Pat
     }
     models: dict[str, pycolmap.Reconstruction] = {}
     evaluations: dict[str, dict] = {}
+    frames = database_rig_frames(source)
     for index, name in enumerate(names, start=1):
         copy = work / name / "database.db"
         copy.parent.mkdir()
@@ -328,6 +330,9 @@ def _compare(source: Path, num_images: int, database_path: Path, image_path: Pat
         entry = _mapper_entry(result, num_images)
         if result.error is None:
             models[name] = result.reconstructions[0]
+            consistency = rig_consistency(result.reconstructions[0], frames)
+            if consistency is not None:
+                entry["rig_consistency"] = consistency
             if truth is not None:
                 try:
                     evaluations[name] = evaluate(result.reconstructions[0], truth)
@@ -375,6 +380,8 @@ def _one_line(entry: dict) -> str:
             f"{entry['num_models']} model(s), {entry['num_points3D']} points, {entry['time_s']:.1f} s")
     if "R_err_max_deg" in entry:
         line += f", R_err max {entry['R_err_max_deg']:.3f} deg"
+    if "rig_consistency" in entry:
+        line += f", rig kept to {entry['rig_consistency']['rotation_max_deg']:.3g} deg"
     return line
 
 

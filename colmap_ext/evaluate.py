@@ -26,6 +26,7 @@ from colmap_ext.angles import rotation_angles_deg, vector_angles_deg
 from colmap_ext.errors import UserError
 from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth, read_model
 from colmap_ext.plots import plot_errors, plot_scene
+from colmap_ext.rig_consistency import format_rig_consistency, rig_consistency, rig_frames_of
 
 logger = logging.getLogger(__name__)
 
@@ -49,23 +50,31 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the points and cameras against the ground truth (top and side "
                              "view) beside it: errors.png gives errors_scene.png")
     parser.add_argument("--format", choices=FORMATS, help="ground-truth format (default: detected)")
+    parser.add_argument("--rig_config", type=Path, default=None,
+                        help="COLMAP's rig configuration JSON to measure the model's rig "
+                             "consistency against (default: the model's own rigs)")
 
 
 def main(model_path: str | os.PathLike, ground_truth: str | os.PathLike,
          output: str | os.PathLike | None = None, plot: str | os.PathLike | None = None,
-         format: str | None = None) -> dict:
+         format: str | None = None, rig_config: str | os.PathLike | None = None) -> dict:
     """Evaluate the model at `model_path`, print a table, optionally write JSON and the plots
-    (`plot` and `scene_plot_path(plot)`)."""
+    (`plot` and `scene_plot_path(plot)`); with frames of several images, the rig's
+    consistency too (against `rig_config`, else the model's own rigs)."""
     return evaluate_and_write(read_model(Path(model_path)), read_ground_truth(ground_truth, format),
-                              output, plot, label=str(model_path))
+                              output, plot, label=str(model_path), rig_config=rig_config)
 
 
 def evaluate_and_write(reconstruction: pycolmap.Reconstruction, truth: GroundTruth,
                        output: str | os.PathLike | None, plot: str | os.PathLike | None,
-                       label: str) -> dict:
+                       label: str, rig_config: str | os.PathLike | None = None) -> dict:
     """`main` on a model read already: the plots name it `label`."""
     report = evaluate(reconstruction, truth)
+    consistency = rig_consistency(reconstruction, rig_frames_of(reconstruction, rig_config))
     print(format_table(report))
+    if consistency is not None:
+        report["rig_consistency"] = consistency
+        print(format_rig_consistency(consistency))
     if output is not None:
         write_json(report, Path(output))
     if plot is not None:

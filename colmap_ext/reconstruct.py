@@ -17,7 +17,7 @@ from contextlib import contextmanager
 from functools import partial
 from pathlib import Path
 
-from colmap_ext import distributed
+from colmap_ext import distributed, rigs
 from colmap_ext.errors import UserError
 from colmap_ext.features import (
     CAMERA_MODES,
@@ -46,10 +46,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--image_path", required=True)
     parser.add_argument("--workspace_path", required=True,
                         help="gets database.db, sparse/0, ... and reconstruct_summary.json")
-    parser.add_argument("--camera_model", required=True,
-                        help="a COLMAP camera model, e.g. PINHOLE, OPENCV")
-    parser.add_argument("--camera_params", required=True,
+    parser.add_argument("--camera_model", default=None,
+                        help="a COLMAP camera model, e.g. PINHOLE, OPENCV (not needed with a "
+                             "--rig_config that names each camera's)")
+    parser.add_argument("--camera_params", default=None,
                         help='the known intrinsics in COLMAP order, e.g. "fx,fy,cx,cy"')
+    parser.add_argument("--rig_config", default=None,
+                        help="COLMAP's rig configuration JSON (`colmap rig_configurator`, "
+                             "`colmap-ext rig_config_from_kalibr`): each camera's image "
+                             "prefix, place on the rig and intrinsics; applied after extraction")
     parser.add_argument("--camera_mode", choices=list(CAMERA_MODES), default="single",
                         help="one camera for all images, or one per sub-folder")
     parser.add_argument("--mask_path", default=None,
@@ -84,7 +89,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "without it (row for row with --exact_matching)")
 
 
-def main(image_path: str, workspace_path: str, camera_model: str, camera_params: str,
+def main(image_path: str, workspace_path: str, camera_model: str | None = None,
+         camera_params: str | None = None, rig_config: str | None = None,
          camera_mode: str = "single", mask_path: str | None = None, segment: str | None = None,
          min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS, matcher: str = "auto",
          exact_matching: bool = False, seed: int | None = None, overwrite: bool = False,
@@ -97,9 +103,13 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
     workspace = Path(workspace_path)
     if ray_address is not None:
         distributed.check_address(ray_address)
+    rig_configs, camera_model, camera_params = check_rig_config(rig_config, camera_model,
+                                                                camera_params, ray_address)
     names, params = check_inputs(image_path, workspace, camera_model, camera_params,
                                  camera_mode, mask_path, segment, min_num_keypoints, matcher,
                                  output_type)
+    if rig_configs is not None:
+        rigs.check_rig_images(rig_configs, names)
     with replacing(workspace_path, WORKSPACE, overwrite) as new_workspace, \
             distributed.optional_cluster(ray_address) as cluster:
         summary = run_stages(
@@ -107,7 +117,8 @@ def main(image_path: str, workspace_path: str, camera_model: str, camera_params:
             camera_model, params, names, seed, start, camera_mode=camera_mode,
             mask_path=mask_path, segment=segment, min_num_keypoints=min_num_keypoints,
             domain_size_pooling=domain_size_pooling, matcher=matcher,
-            exact_matching=exact_matching, output_type=output_type, cluster=cluster)
+            exact_matching=exact_matching, output_type=output_type, cluster=cluster,
+            rig_configs=rig_configs)
     print(format_summary(summary, workspace))
     return summary
 
@@ -118,11 +129,12 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
                segment: str | None = None, min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS,
                domain_size_pooling: bool = False, matcher: str = "auto",
                exact_matching: bool = False, output_type: str = "BIN",
-               cluster: distributed.Cluster | None = None) -> dict:
+               cluster: distributed.Cluster | None = None,
+               rig_configs: list | None = None) -> dict:
     """The stages of `main` once the inputs are checked, written into `new_workspace`, a
     folder of model_io.replacing; `shown`: where a path will be once it is moved into place
     (model_io.moved), for the summary; `cluster`: where features and matching run (None:
-    here)."""
+    here); `rig_configs`: applied after extraction."""
     seed = secrets.randbits(31) if seed is None else seed
     database_path = new_workspace / DATABASE_NAME
     times: dict[str, float] = {}
@@ -145,6 +157,8 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
                                         mask_path=mask_path, min_num_keypoints=min_num_keypoints,
                                         image_names=names,
                                         domain_size_pooling=domain_size_pooling)
+        if rig_configs is not None:
+            rigs.apply_rig_config(database_path, rig_configs)
         matching = match_features(database_path, matcher=matcher, seed=seed,
                                   exact=exact_matching)
     else:
@@ -168,6 +182,26 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
     summary["time_s"] = {name: round(seconds, 3) for name, seconds in times.items()}
     write_json(summary, new_workspace / "reconstruct_summary.json")
     return summary
+
+
+def check_rig_config(rig_config: str | None, camera_model: str | None,
+                     camera_params: str | None, ray_address: str | None,
+                     ) -> tuple[list | None, str, str | list[float]]:
+    """The rig configuration (None without one) and the camera to extract with: the flags'
+    or, without them, the configuration's first camera (each camera gets its own from the
+    configuration after extraction)."""
+    configs = None if rig_config is None else rigs.read_rig_config(rig_config)
+    if configs is not None and ray_address is not None:
+        raise UserError("--rig_config does not run with --ray_address yet")
+    if camera_model is not None and camera_params is not None:
+        return configs, camera_model, camera_params
+    if camera_model is not None or camera_params is not None:
+        raise UserError("give --camera_model and --camera_params together")
+    cameras = [camera.camera for config in configs or [] for camera in config.cameras]
+    if not cameras or any(camera is None for camera in cameras):
+        raise UserError("give --camera_model and --camera_params, or a --rig_config with "
+                        "camera_model_name and camera_params for every camera")
+    return configs, cameras[0].model.name, list(cameras[0].params)
 
 
 def check_inputs(image_path: str, workspace: Path, camera_model: str, camera_params: str,

@@ -289,7 +289,8 @@ def test_arguments_match_main() -> None:
     parser = argparse.ArgumentParser()
     add_arguments(parser)
     args = parser.parse_args(["--model_path", "m", "--ground_truth", "g", "--format", "strecha"])
-    assert set(vars(args)) == {"model_path", "ground_truth", "output", "plot", "format"}
+    assert set(vars(args)) == {"model_path", "ground_truth", "output", "plot", "format",
+                               "rig_config"}
     with pytest.raises(SystemExit):
         parser.parse_args(["--model_path", "m", "--ground_truth", "g", "--format", "bundler"])
 

@@ -1,0 +1,306 @@
+"""Setting up rigs (Kalibr camchain files to COLMAP's rig configuration, `reconstruct
+--rig_config`) and measuring how well a model keeps one (`evaluate`, rig consistency)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+import yaml
+
+from colmap_ext import evaluate, reconstruct, rigs
+from colmap_ext.compare import compare
+from colmap_ext.errors import UserError
+from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
+from colmap_ext.synthetic.render import render_images
+from colmap_ext.synthetic.scene import Scene, ring_scene
+
+RADTAN = {"distortion_model": "radtan", "distortion_coeffs": [-0.28, 0.07, 1e-4, -2e-4]}
+EQUIDISTANT = {"distortion_model": "equidistant",
+               "distortion_coeffs": [-0.037, -0.009, 0.0089, -0.0038]}
+
+
+def random_pose(rng: np.random.Generator, angle_deg: float = 40.0) -> pycolmap.Rigid3d:
+    axis = rng.normal(size=3)
+    rotation = pycolmap.Rotation3d(np.radians(angle_deg) * rng.uniform(0.2, 1) * axis
+                                   / np.linalg.norm(axis))
+    return pycolmap.Rigid3d(rotation, rng.uniform(-0.2, 0.2, 3))
+
+
+def kalibr_matrix(pose: pycolmap.Rigid3d) -> list[list[float]]:
+    return pose.matrix().tolist() + [[0.0, 0.0, 0.0, 1.0]]
+
+
+def kalibr_camera(index: int, distortion: dict, **transforms: pycolmap.Rigid3d) -> dict:
+    entry = {"camera_model": "pinhole", "intrinsics": [400.0 + index, 401.0, 320.5, 240.5],
+             "resolution": [640, 480], "rostopic": f"/cam{index}/image_raw", **distortion}
+    entry.update({key: kalibr_matrix(pose) for key, pose in transforms.items()})
+    return entry
+
+
+def write_yaml(path: Path, cameras: list[dict]) -> Path:
+    path.write_text(yaml.safe_dump({f"cam{index}": camera for index, camera in enumerate(cameras)}))
+    return path
+
+
+def assert_same_pose(a: pycolmap.Rigid3d, b: pycolmap.Rigid3d, tolerance: float = 1e-9) -> None:
+    np.testing.assert_allclose(a.matrix(), b.matrix(), atol=tolerance)
+
+
+def test_kalibr_camchains_linked_by_their_imu_round_trip_through_colmaps_rig_config(
+        tmp_path: Path) -> None:
+    rng = np.random.default_rng(0)
+    cams_from_rig = [pycolmap.Rigid3d(), random_pose(rng), random_pose(rng)]
+    rig_from_imu = random_pose(rng, 90.0)
+    cams_from_imu = [cam_from_rig * rig_from_imu for cam_from_rig in cams_from_rig]
+    stereo = write_yaml(tmp_path / "stereo-camchain-imucam.yaml", [
+        kalibr_camera(0, RADTAN, T_cam_imu=cams_from_imu[0]),
+        kalibr_camera(1, RADTAN, T_cam_imu=cams_from_imu[1],
+                      T_cn_cnm1=cams_from_rig[1] * cams_from_rig[0].inverse())])
+    side = write_yaml(tmp_path / "side-camchain-imucam.yaml",
+                      [kalibr_camera(2, EQUIDISTANT, T_cam_imu=cams_from_imu[2])])
+
+    output = tmp_path / "rig.json"
+    rigs.main([str(stereo), str(side)], str(output), image_prefix=["left/", "right/", "side/"])
+    (config,) = pycolmap.read_rig_config(str(output))
+
+    assert [camera.image_prefix for camera in config.cameras] == ["left/", "right/", "side/"]
+    assert [camera.ref_sensor for camera in config.cameras] == [True, False, False]
+    for camera, truth in zip(config.cameras[1:], cams_from_rig[1:]):
+        assert_same_pose(camera.cam_from_rig, truth)
+    models = [camera.camera.model.name for camera in config.cameras]
+    assert models == ["OPENCV", "OPENCV", "OPENCV_FISHEYE"]
+    np.testing.assert_allclose(config.cameras[1].camera.params,
+                               [401.0, 401.0, 320.5, 240.5, *RADTAN["distortion_coeffs"]])
+    np.testing.assert_allclose(config.cameras[2].camera.params,
+                               [402.0, 401.0, 320.5, 240.5, *EQUIDISTANT["distortion_coeffs"]])
+
+
+def test_a_camchain_without_imu_is_chained_from_its_first_camera(tmp_path: Path) -> None:
+    rng = np.random.default_rng(1)
+    cams_from_rig = [pycolmap.Rigid3d(), random_pose(rng), random_pose(rng)]
+    path = write_yaml(tmp_path / "camchain.yaml", [kalibr_camera(0, EQUIDISTANT)] + [
+        kalibr_camera(index, EQUIDISTANT,
+                      T_cn_cnm1=cams_from_rig[index] * cams_from_rig[index - 1].inverse())
+        for index in (1, 2)])
+
+    cameras = rigs.read_kalibr_rig([path])
+
+    for camera, truth in zip(cameras, cams_from_rig):
+        assert_same_pose(camera.cam_from_rig, truth)
+
+
+@pytest.mark.parametrize(("change", "message"), [
+    ({"camera_model": "omni"}, "camera_model 'omni' is not supported"),
+    ({"distortion_model": "fov"}, "distortion_model 'fov' is not supported"),
+    ({"intrinsics": [400.0, 400.0, 320.0]}, "expected 4 intrinsics"),
+    ({"T_cam_imu": [[2.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]},
+     "T_cam_imu does not hold a rotation"),
+])
+def test_a_camchain_it_cannot_read_is_a_one_line_error(tmp_path: Path, change: dict,
+                                                        message: str) -> None:
+    camera = {**kalibr_camera(0, RADTAN, T_cam_imu=pycolmap.Rigid3d()), **change}
+    path = write_yaml(tmp_path / "camchain.yaml", [camera])
+    with pytest.raises(UserError, match=message):
+        rigs.main([str(path)], str(tmp_path / "rig.json"))
+    assert not (tmp_path / "rig.json").exists()
+
+
+def test_several_camchains_need_the_imu_to_link_them(tmp_path: Path) -> None:
+    first = write_yaml(tmp_path / "a.yaml", [kalibr_camera(0, RADTAN)])
+    second = write_yaml(tmp_path / "b.yaml", [kalibr_camera(1, RADTAN)])
+    with pytest.raises(UserError, match="every camera needs T_cam_imu when several"):
+        rigs.read_kalibr_rig([first, second])
+
+
+def test_hilti_rigs_kalibr_files_agree_with_its_stereo_pairs_chain(real_data: Path) -> None:
+    """hilti_rig: five cameras in four camchain-imucam files; cam1's place from the IMU
+    equals its T_cn_cnm1 from cam0 (Kalibr's stereo calibration, 10.8 cm)."""
+    calibration = real_data / "hilti_rig" / "calibration"
+    files = sorted(calibration.glob("calib_3_cam*-camchain-imucam.yaml"))
+    cameras = rigs.read_kalibr_rig(files)
+    assert [camera.model for camera in cameras] == ["OPENCV_FISHEYE"] * 5
+    stereo = yaml.safe_load(files[0].read_text())["cam1"]["T_cn_cnm1"]
+    np.testing.assert_allclose(cameras[1].cam_from_rig.matrix(), np.array(stereo)[:3], atol=1e-6)
+
+
+@pytest.fixture(scope="module")
+def synthetic_rigs() -> pycolmap.Reconstruction:
+    """COLMAP's generator: 2 rigs of 3 cameras, 3 frames each (the true model)."""
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig = 2, 3, 3
+    options.num_points3D = 50
+    pycolmap.set_random_seed(0)
+    with pycolmap.Database.open(":memory:") as db:
+        return pycolmap.synthesize_dataset(options, db)
+
+
+def turned_sensor(model: pycolmap.Reconstruction, angle_deg: float,
+                  ) -> tuple[pycolmap.Reconstruction, int]:
+    """A copy of `model` with one non-reference camera of rig 1 turned by `angle_deg` on
+    the rig; and that rig's id."""
+    turned = pycolmap.Reconstruction(model)
+    rig = turned.rigs[1]
+    sensor_id = next(iter(rig.non_ref_sensors))
+    turn = pycolmap.Rigid3d(pycolmap.Rotation3d(np.radians([angle_deg, 0.0, 0.0])), [0, 0, 0])
+    rig.set_sensor_from_rig(sensor_id, turn * rig.sensor_from_rig(sensor_id))
+    return turned, rig.rig_id
+
+
+def test_rig_consistency_finds_a_camera_turned_on_its_rig(synthetic_rigs) -> None:
+    frames = model_rig_frames(synthetic_rigs)
+    assert len(frames) == 6 and all(len(members) == 3 for members in frames.values())
+
+    kept = rig_consistency(synthetic_rigs, frames)
+    assert kept["rotation_max_deg"] < 1e-9 and kept["translation_max"] < 1e-5
+    assert kept["scale"] == pytest.approx(1.0)
+
+    turned, rig_id = turned_sensor(synthetic_rigs, 0.5)
+    found = rig_consistency(turned, frames)
+    assert found["rotation_max_deg"] == pytest.approx(0.5, abs=1e-9)
+    for entry in found["per_frame"]:
+        expected = 0.5 if synthetic_rigs.frames[int(entry["frame"])].rig_id == rig_id else 0.0
+        assert entry["rotation_max_deg"] == pytest.approx(expected, abs=1e-9)
+
+
+def rig_config_of(model: pycolmap.Reconstruction, rig_id: int) -> list[dict]:
+    """The rig configuration of one rig of a synthesize_dataset model, whose images are
+    named camera<camera id>_frame<n>.png."""
+    rig = model.rigs[rig_id]
+    cameras = []
+    for sensor_id in rig.sensor_ids():
+        entry: dict = {"image_prefix": f"camera{sensor_id.id:06d}_"}
+        if sensor_id == rig.ref_sensor_id:
+            entry["ref_sensor"] = True
+        else:
+            pose = rig.sensor_from_rig(sensor_id)
+            x, y, z, w = pose.rotation.quat
+            entry["cam_from_rig_rotation"] = [w, x, y, z]
+            entry["cam_from_rig_translation"] = pose.translation.tolist()
+        cameras.append(entry)
+    return [{"cameras": sorted(cameras, key=lambda entry: "ref_sensor" not in entry)}]
+
+
+def test_evaluate_measures_the_rig_of_a_configuration_or_else_the_models_own(
+        synthetic_rigs, tmp_path: Path) -> None:
+    turned, rig_id = turned_sensor(synthetic_rigs, 0.5)
+    (tmp_path / "truth").mkdir()
+    (tmp_path / "turned").mkdir()
+    synthetic_rigs.write(str(tmp_path / "truth"))
+    turned.write(str(tmp_path / "turned"))
+    config = tmp_path / "rig.json"
+    config.write_text(json.dumps(rig_config_of(synthetic_rigs, rig_id)))
+
+    own = evaluate.main(tmp_path / "turned", tmp_path / "truth")
+    against_config = evaluate.main(tmp_path / "turned", tmp_path / "truth", rig_config=config)
+
+    assert own["rig_consistency"]["rotation_max_deg"] < 1e-9  # it keeps its own (turned) rig
+    assert against_config["rig_consistency"]["rotation_max_deg"] == pytest.approx(0.5, abs=1e-9)
+    assert against_config["rig_consistency"]["num_frames"] == 3  # the configured rig's frames
+    assert own["R_err_max_deg"] == pytest.approx(0.5, abs=1e-6)
+
+
+# A 320x240 pinhole camera for the rendered rig.
+CAMERA = pycolmap.Camera(camera_id=1, model="PINHOLE", width=320, height=240,
+                         params=[300.0, 300.0, 160.0, 120.0])
+
+
+@pytest.fixture(scope="module")
+def rendered_rig(tmp_path_factory) -> tuple[Path, Path, pycolmap.Rigid3d]:
+    """A two-camera rig (the second 0.4 to the side, turned 15 deg) at six places of the
+    synthetic ring, rendered as left/frameN.png and right/frameN.png: (images, rig
+    configuration, right_from_rig)."""
+    folder = tmp_path_factory.mktemp("rendered_rig")
+    ring = ring_scene(num_images=6, seed=0, camera=CAMERA)
+    right_from_rig = pycolmap.Rigid3d(pycolmap.Rotation3d(np.radians([0.0, -15.0, 0.0])),
+                                      [-0.4, 0.0, 0.0])
+    poses = [pose for rig_from_world in ring.cams_from_world
+             for pose in (rig_from_world, right_from_rig * rig_from_world)]
+    names = [f"{side}/frame{index}.png" for index in range(6) for side in ("left", "right")]
+    render_images(Scene(CAMERA, poses, names, ring.quads), folder / "images", supersample=1)
+    x, y, z, w = right_from_rig.rotation.quat
+    pinhole = {"camera_model_name": "PINHOLE", "camera_params": list(CAMERA.params)}
+    config = [{"cameras": [
+        {"image_prefix": "left/", "ref_sensor": True, **pinhole},
+        {"image_prefix": "right/", "cam_from_rig_rotation": [w, x, y, z],
+         "cam_from_rig_translation": right_from_rig.translation.tolist(), **pinhole}]}]
+    (folder / "rig.json").write_text(json.dumps(config))
+    return folder / "images", folder / "rig.json", right_from_rig
+
+
+def test_reconstruct_with_a_rig_config_writes_the_rig_and_its_frames(
+        rendered_rig, tmp_path: Path) -> None:
+    images, config, right_from_rig = rendered_rig
+    summary = reconstruct.main(images, tmp_path / "ws", rig_config=str(config), seed=0)
+
+    with pycolmap.Database.open(str(tmp_path / "ws" / "database.db")) as db:
+        (rig,) = db.read_all_rigs()
+        frames = db.read_all_frames()
+        cameras = {image.name: image.camera_id for image in db.read_all_images()}
+        (right_sensor,) = rig.non_ref_sensors
+        assert_same_pose(rig.sensor_from_rig(right_sensor), right_from_rig)
+        assert db.read_camera(right_sensor.id).model.name == "PINHOLE"
+    assert len(frames) == 6 and all(frame.num_data_ids() == 2 for frame in frames)
+    assert {cameras[name] for name in cameras if name.startswith("left/")} == {rig.ref_sensor_id.id}
+    assert {cameras[name] for name in cameras if name.startswith("right/")} == {right_sensor.id}
+    assert summary["models"][0]["num_registered"] >= 4
+
+
+@pytest.mark.parametrize(("config", "message"), [
+    ([{"cameras": [{"image_prefix": "left/", "ref_sensor": True}]}],
+     "image right/frame0.png is under 0 of the rig configuration's image prefixes"),
+    ([{"cameras": [{"image_prefix": "left/", "ref_sensor": True},
+                   {"image_prefix": "right/", "cam_from_rig_rotation": [1, 0, 0, 0],
+                    "cam_from_rig_translation": [1, 0, 0]},
+                   {"image_prefix": "top/", "cam_from_rig_rotation": [1, 0, 0, 0],
+                    "cam_from_rig_translation": [0, 1, 0]}]}],
+     "no image under the rig configuration's image prefix 'top/'"),
+    ([{"cameras": [{"image_prefix": "left/"}]}], "not a COLMAP rig configuration"),
+])
+def test_reconstruct_checks_the_rig_config_before_any_work(
+        rendered_rig, tmp_path: Path, config: list, message: str) -> None:
+    images, _, _ = rendered_rig
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps(config))
+    with pytest.raises(UserError, match=message):
+        reconstruct.main(images, tmp_path / "ws", "PINHOLE", "300,300,160,120",
+                         rig_config=str(path))
+    assert not (tmp_path / "ws" / "database.db").exists()
+
+
+def test_reconstruct_needs_intrinsics_from_the_flags_or_the_rig_config(
+        rendered_rig, tmp_path: Path) -> None:
+    images, _, _ = rendered_rig
+    path = tmp_path / "rig.json"
+    path.write_text(json.dumps([{"cameras": [{"image_prefix": "left/", "ref_sensor": True},
+                                             {"image_prefix": "right/", "ref_sensor": False}]}]))
+    with pytest.raises(UserError, match="give --camera_model and --camera_params, or"):
+        reconstruct.main(images, tmp_path / "ws", rig_config=str(path))
+
+
+def test_compare_measures_each_mappers_model_against_the_databases_rig(tmp_path: Path) -> None:
+    """COLMAP's generator: one rig of 3 cameras, 5 frames, no noise; black images (our
+    mapper reads point colours)."""
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig = 1, 3, 5
+    options.num_points3D = 200
+    pycolmap.set_random_seed(0)
+    with pycolmap.Database.open(str(tmp_path / "database.db")) as db:
+        truth = pycolmap.synthesize_dataset(options, db)
+    (tmp_path / "images").mkdir()
+    for image in truth.images.values():
+        cv2.imwrite(str(tmp_path / "images" / image.name), np.zeros((8, 8), np.uint8))
+
+    report = compare(tmp_path / "database.db", tmp_path / "images", tmp_path / "CMP",
+                     mappers="ours,colmap_incremental", seed=0, progress=False)
+
+    assert set(report["mappers"]) == {"ours", "colmap_incremental"}
+    for name, entry in report["mappers"].items():  # noise-free: each keeps the rig closely
+        consistency = entry["rig_consistency"]
+        assert consistency["num_frames"] == 5, name
+        assert consistency["rotation_max_deg"] < 1e-3, name
+        assert consistency["translation_max"] < 1e-3, name
