@@ -294,7 +294,7 @@ def _check_written(reconstruction: pycolmap.Reconstruction, folder: Path) -> Non
         raise OSError(f"the model written to {folder.name} reads back incomplete (is the disk full?)")
 
 
-def write_json(data: dict, path: str | Path) -> None:
+def write_json(data: dict | list, path: str | Path) -> None:
     """Write JSON through a temporary file and a rename."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp")

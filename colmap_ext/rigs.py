@@ -20,7 +20,6 @@ the rig's reference, so the rig frame written is the first camera's.
 from __future__ import annotations
 
 import argparse
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -30,6 +29,7 @@ import pycolmap
 import yaml
 
 from colmap_ext.errors import UserError
+from colmap_ext.model_io import write_json
 
 # Kalibr distortion model (with camera_model pinhole) -> COLMAP camera model; the COLMAP
 # parameters are the intrinsics followed by the distortion coefficients in Kalibr's order.
@@ -63,18 +63,22 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "(default: cam0/, cam1/, ...)")
     parser.add_argument("--output_path", required=True,
                         help="the rig configuration JSON to write (COLMAP's format)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing file at --output_path")
 
 
-def main(camchain: list[str], output_path: str,
-         image_prefix: list[str] | None = None) -> list[dict]:
-    """Write the rig configuration of the Kalibr files `camchain` to `output_path`."""
+def main(camchain: list[str], output_path: str, image_prefix: list[str] | None = None,
+         overwrite: bool = False) -> list[dict]:
+    """Write the rig configuration of the Kalibr files `camchain` to `output_path` (in one
+    step: a temporary file renamed into place); an existing file only with `overwrite`."""
+    if Path(output_path).is_dir() or (Path(output_path).exists() and not overwrite):
+        raise UserError(f"{output_path} exists; pass --overwrite to replace it"
+                        if not Path(output_path).is_dir() else
+                        f"output path is a folder, not a file: {output_path}")
     cameras = read_kalibr_rig([Path(path) for path in camchain])
     prefixes = image_prefix or [f"cam{index}/" for index in range(len(cameras))]
     config = rig_config(cameras, prefixes)
-    try:
-        Path(output_path).write_text(json.dumps(config, indent=2) + "\n", encoding="utf-8")
-    except OSError as exc:
-        raise UserError(f"cannot write {output_path}: {exc.strerror or exc}") from None
+    write_json(config, output_path)
     print(f"Rig configuration of {len(cameras)} cameras: {output_path}")
     return config
 

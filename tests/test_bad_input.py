@@ -1195,6 +1195,65 @@ def _(env):
     return env.evaluate(None, None, "--plot", str(env.inputs / "file" / "errors.png"))
 
 
+# ---- rig_config_from_kalibr (Kalibr camchain files to COLMAP's rig configuration)
+
+CAMCHAIN = """cam0:
+  camera_model: pinhole
+  distortion_model: equidistant
+  distortion_coeffs: [0.01, -0.002, 0.0005, 0.0]
+  intrinsics: [350.0, 350.0, 360.0, 270.0]
+  resolution: [720, 540]
+cam1:
+  camera_model: pinhole
+  distortion_model: equidistant
+  distortion_coeffs: [0.01, -0.002, 0.0005, 0.0]
+  intrinsics: [350.0, 350.0, 360.0, 270.0]
+  resolution: [720, 540]
+  T_cn_cnm1:
+  - [1.0, 0.0, 0.0, -0.11]
+  - [0.0, 1.0, 0.0, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  - [0.0, 0.0, 0.0, 1.0]
+"""
+
+
+def _kalibr(env, camchain: str, output: Path | None = None, *extra: str) -> list[str]:
+    path = env.inputs / "camchain.yaml"
+    path.write_text(camchain)
+    return ["rig_config_from_kalibr", "--camchain", str(path),
+            "--output_path", str(output or env.out / "rig.json"), *extra]
+
+
+@case("kalibr_positive_control", "Rig configuration of 2 cameras", code=0,
+      command="rig_config_from_kalibr")
+def _(env):
+    env.out.mkdir()
+    return _kalibr(env, CAMCHAIN)
+
+
+@case("kalibr_camchain_missing", "cannot read", command="rig_config_from_kalibr")
+def _(env):
+    return ["rig_config_from_kalibr", "--camchain", str(env.inputs / "nope.yaml"),
+            "--output_path", str(env.out / "rig.json")]
+
+
+@case("kalibr_not_yaml", "not YAML", command="rig_config_from_kalibr")
+def _(env):
+    return _kalibr(env, "cam0: [unclosed\n")
+
+
+@case("kalibr_unsupported_distortion", "is not supported", command="rig_config_from_kalibr")
+def _(env):
+    return _kalibr(env, CAMCHAIN.replace("equidistant", "fov", 1))
+
+
+@case("kalibr_output_exists_is_kept", "exists; pass --overwrite", command="rig_config_from_kalibr")
+def _(env):
+    existing = env.inputs / "rig.json"
+    existing.write_text("[]\n")  # an input: hashed before and after
+    return _kalibr(env, CAMCHAIN, existing)
+
+
 # ---- demo
 
 
