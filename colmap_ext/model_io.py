@@ -295,12 +295,14 @@ def _check_written(reconstruction: pycolmap.Reconstruction, folder: Path) -> Non
 
 
 def write_json(data: dict, path: str | Path) -> None:
-    """Write JSON through a temporary file and a rename."""
+    """Write JSON through a temporary file and a rename, so no reader sees half of it."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
-        os.replace(tmp, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        temporary.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+        os.replace(temporary, path)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise UserError(f"could not write {path}: {exc.strerror or exc}") from None
+        with contextlib.suppress(OSError):  # e.g. the folder is a file: no temporary to remove
+            temporary.unlink(missing_ok=True)
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None

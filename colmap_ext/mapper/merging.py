@@ -22,7 +22,7 @@ import numpy as np
 import pycolmap
 
 import solvers
-from colmap_ext.angles import mean_rotation, rotation_angles_deg, vector_angles_deg
+from colmap_ext.geometry import mean_rotation, rotation_angles_deg, vector_angles_deg
 from colmap_ext.mapper.descriptors import nearest_descriptors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
