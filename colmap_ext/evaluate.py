@@ -22,8 +22,8 @@ import pycolmap
 
 from colmap_ext.errors import UserError
 from colmap_ext.geometry import fit_similarity, rotation_angles_deg, vector_angles_deg
-from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth, read_model
-from colmap_ext.model_io import write_json
+from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth
+from colmap_ext.model_io import read_model, write_json
 from colmap_ext.plots import plot_errors, plot_scene
 from colmap_ext.rig_consistency import format_rig_consistency, rig_consistency, rig_frames_of
 

@@ -25,6 +25,7 @@ from PIL import Image
 
 from colmap_ext.errors import UserError
 from colmap_ext.geometry import nearest_rotation
+from colmap_ext.model_io import read_model
 
 FORMATS = ("middlebury", "strecha", "colmap")
 
@@ -164,16 +165,6 @@ def read_colmap(folder: str | os.PathLike) -> GroundTruth:
         poses={image.name: copy.copy(image.cam_from_world()) for image in images},
         cameras={image.name: copy.copy(image.camera) for image in images},
     )
-
-
-def read_model(path: Path) -> pycolmap.Reconstruction:
-    """Read a COLMAP model folder, turning pycolmap's failures into a one-line UserError."""
-    if not path.is_dir():
-        raise UserError(f"model not found: {path} is not a folder")
-    try:
-        return pycolmap.Reconstruction(path)
-    except Exception as exc:  # ValueError, RuntimeError, IndexError... from truncated files
-        raise UserError(f"{path}: not a readable COLMAP model ({exc})") from None
 
 
 def to_reconstruction(ground_truth: GroundTruth) -> pycolmap.Reconstruction:

@@ -245,18 +245,20 @@ def _swap_in(new: Path, output_path: Path, previous: list[Path], old: Path) -> N
 
 
 def read_model(path: str | Path) -> pycolmap.Reconstruction:
-    """A COLMAP model folder (BIN or TXT), e.g. one to continue; a UserError if it is
-    missing or cannot be read."""
+    """A COLMAP model folder (BIN or TXT); a one-line UserError if it is missing or cannot
+    be read."""
     path = Path(path)
     found = {f.name for f in path.iterdir()} if path.is_dir() else set()
     if not any({f"cameras.{e}", f"images.{e}", f"points3D.{e}"} <= found for e in ("bin", "txt")):
+        kind = "not a readable COLMAP model" if path.is_dir() else "model not found"
         raise UserError(f"no COLMAP model in {path}: expected cameras, images and points3D "
-                        f"(.bin or .txt)")
+                        f"(.bin or .txt) ({kind})")
     try:
         return pycolmap.Reconstruction(path)
     except Exception as exc:  # pycolmap: ValueError, IndexError, RuntimeError on bad files
         reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"cannot read the model in {path}: {reason}") from None
+        raise UserError(f"cannot read the model in {path}: {reason} (not a readable COLMAP "
+                        "model)") from None
 
 
 def write_models(reconstructions: list[pycolmap.Reconstruction], output_path: str | Path,
