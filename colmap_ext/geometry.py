@@ -38,8 +38,9 @@ def fit_similarity(source: np.ndarray, target: np.ndarray,
     """The least-squares similarity taking `source` points (n,3) onto `target` (Umeyama
     1991); with `rotation` given, its scale and translation alone.
 
-    Not pycolmap.estimate_sim3d, which refuses fewer than 3 points: a 2-view model is
-    evaluated, and its rotation is fixed by the cameras' own rotations here."""
+    Not pycolmap.estimate_sim3d: it refuses 2 points (pycolmap 4.2.1: "Check failed:
+    src.size() >= kMinNumSamples (2 vs. 3)"), which a 2-view model under evaluation and
+    two cross-registrations (merging.py) have, and it cannot keep a given rotation."""
     mean_source, mean_target = source.mean(axis=0), target.mean(axis=0)
     offsets_source, offsets_target = source - mean_source, target - mean_target
     if rotation is None:
