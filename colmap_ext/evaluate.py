@@ -189,9 +189,9 @@ def aligned_to_ground_truth(reconstruction: pycolmap.Reconstruction,
     """
     matches = match_images(reconstruction, list(ground_truth.poses))
     names = [name for name in ground_truth.poses if name in matches]
-    gt_from_model = fit_similarity(np.array([matches[name].projection_center() for name in names]),
-                               np.array([ground_truth.poses[name].inverse().translation
-                                         for name in names]))
+    gt_from_model = fit_similarity(
+        np.array([matches[name].projection_center() for name in names]),
+        np.array([ground_truth.poses[name].inverse().translation for name in names]))
     cameras = {name: gt_from_model.transform_camera_world(matches[name].cam_from_world())
                for name in names}
     xyz = [point.xyz for _, point in sorted(reconstruction.points3D.items())]  # in id order
