@@ -28,7 +28,10 @@ $(STAMPS)/venv: requirements-build.txt | $(STAMPS)/apt
 	$(PY) -m pip install -q -r requirements-build.txt
 	@touch $@
 
-$(STAMPS)/installed: $(STAMPS)/venv pyproject.toml $(shell find cpp -type f) 
+# The editable install lists the Python modules: again when a package folder gains or
+# loses one (its folder's time changes).
+$(STAMPS)/installed: $(STAMPS)/venv pyproject.toml $(shell find cpp -type f) \
+		$(shell find colmap_ext solvers -type d -not -name __pycache__)
 	$(PY) -m pip install -q --no-build-isolation -e '.[test]'
 	@touch $@
 

@@ -25,7 +25,8 @@ import pycolmap
 
 from colmap_ext.errors import UserError
 from colmap_ext.evaluate import evaluate, match_images, relative_to_first
-from colmap_ext.ground_truth import GroundTruth, read_ground_truth, read_model
+from colmap_ext.ground_truth import GroundTruth, read_ground_truth
+from colmap_ext.model_io import read_model
 
 
 def rotation_vector_deg(R: np.ndarray) -> np.ndarray:

@@ -22,7 +22,7 @@ from colmap_ext.errors import Interrupted, UserError
 COMMANDS: dict[str, tuple[str, str]] = {
     "mapper": ("colmap_ext.mapper.cli", "Reconstruct poses and points from a COLMAP database "
                "(known intrinsics), like `colmap mapper`."),
-    "hierarchical_mapper": ("colmap_ext.hierarchical_mapper", "Map a large database cluster "
+    "hierarchical_mapper": ("colmap_ext.hierarchical_mapper.cli", "Map a large database cluster "
                             "by cluster (local processes or Ray tasks) and join the models, "
                             "like `colmap hierarchical_mapper`."),
     "reconstruct": ("colmap_ext.reconstruct", "Images and known intrinsics in, a COLMAP "

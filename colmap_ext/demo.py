@@ -15,10 +15,10 @@ from pathlib import Path
 from colmap_ext import evaluate, reconstruct
 from colmap_ext.errors import UserError
 from colmap_ext.features import list_images
-from colmap_ext.ground_truth import read_ground_truth, read_model
+from colmap_ext.ground_truth import read_ground_truth
 from colmap_ext.mapper.flags import random_seed
 from colmap_ext.model_io import (OutputLayout, holds_only, is_file, is_model_folder, moved,
-                                 replacing)
+                                 read_model, replacing)
 from colmap_ext.synthetic.render import render_images, write_ground_truth
 from colmap_ext.synthetic.scene import ring_scene
 

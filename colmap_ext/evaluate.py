@@ -13,8 +13,6 @@ C_err_aligned replaces the first camera's frame and spread by the best similarit
 from __future__ import annotations
 
 import argparse
-import contextlib
-import json
 import logging
 import os
 from pathlib import Path, PurePosixPath
@@ -22,9 +20,10 @@ from pathlib import Path, PurePosixPath
 import numpy as np
 import pycolmap
 
-from colmap_ext.angles import rotation_angles_deg, vector_angles_deg
 from colmap_ext.errors import UserError
-from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth, read_model
+from colmap_ext.geometry import fit_similarity, rotation_angles_deg, vector_angles_deg
+from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth
+from colmap_ext.model_io import read_model, write_json
 from colmap_ext.plots import plot_errors, plot_scene
 from colmap_ext.rig_consistency import format_rig_consistency, rig_consistency, rig_frames_of
 
@@ -176,19 +175,7 @@ def pose_errors(gt_poses: list[pycolmap.Rigid3d], est_poses: list[pycolmap.Rigid
 
 def align_similarity(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     """`source` points (n,3) moved by the least-squares similarity onto `target`."""
-    return similarity(source, target) * source
-
-
-def similarity(source: np.ndarray, target: np.ndarray) -> pycolmap.Sim3d:
-    """The least-squares similarity taking `source` points (n,3) onto `target` (Umeyama
-    1991). Not pycolmap.estimate_sim3d, which needs 3 points: a 2-view model is evaluated."""
-    mu_s, mu_t = source.mean(axis=0), target.mean(axis=0)
-    xs, xt = source - mu_s, target - mu_t
-    u, d, vt = np.linalg.svd(xt.T @ xs)
-    signs = np.array([1.0, 1.0, np.sign(np.linalg.det(u @ vt))])
-    rotation = u @ np.diag(signs) @ vt
-    scale = np.sum(d * signs) / np.sum(xs**2)
-    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), mu_t - scale * rotation @ mu_s)
+    return fit_similarity(source, target) * source
 
 
 def aligned_to_ground_truth(reconstruction: pycolmap.Reconstruction,
@@ -202,9 +189,9 @@ def aligned_to_ground_truth(reconstruction: pycolmap.Reconstruction,
     """
     matches = match_images(reconstruction, list(ground_truth.poses))
     names = [name for name in ground_truth.poses if name in matches]
-    gt_from_model = similarity(np.array([matches[name].projection_center() for name in names]),
-                               np.array([ground_truth.poses[name].inverse().translation
-                                         for name in names]))
+    gt_from_model = fit_similarity(
+        np.array([matches[name].projection_center() for name in names]),
+        np.array([ground_truth.poses[name].inverse().translation for name in names]))
     cameras = {name: gt_from_model.transform_camera_world(matches[name].cam_from_world())
                for name in names}
     xyz = [point.xyz for _, point in sorted(reconstruction.points3D.items())]  # in id order
@@ -242,16 +229,3 @@ def format_table(report: dict) -> str:
         maximum, median = report[summary_key(key, "max")], report[summary_key(key, "median")]
         lines.append(f"{key.removesuffix('_deg') + ':':<15}max {maximum:.4f}  median {median:.4f}  ({unit})")
     return "\n".join(lines)
-
-
-def write_json(report: dict, path: Path) -> None:
-    """Write the report as JSON through a temporary file, so no reader sees half of it."""
-    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    try:
-        path.parent.mkdir(parents=True, exist_ok=True)
-        temporary.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
-        os.replace(temporary, path)
-    except OSError as exc:
-        with contextlib.suppress(OSError):  # e.g. the folder is a file: no temporary to remove
-            temporary.unlink(missing_ok=True)
-        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None

@@ -24,6 +24,8 @@ import pycolmap
 from PIL import Image
 
 from colmap_ext.errors import UserError
+from colmap_ext.geometry import nearest_rotation
+from colmap_ext.model_io import read_model
 
 FORMATS = ("middlebury", "strecha", "colmap")
 
@@ -165,16 +167,6 @@ def read_colmap(folder: str | os.PathLike) -> GroundTruth:
     )
 
 
-def read_model(path: Path) -> pycolmap.Reconstruction:
-    """Read a COLMAP model folder, turning pycolmap's failures into a one-line UserError."""
-    if not path.is_dir():
-        raise UserError(f"model not found: {path} is not a folder")
-    try:
-        return pycolmap.Reconstruction(path)
-    except Exception as exc:  # ValueError, RuntimeError, IndexError... from truncated files
-        raise UserError(f"{path}: not a readable COLMAP model ({exc})") from None
-
-
 def to_reconstruction(ground_truth: GroundTruth) -> pycolmap.Reconstruction:
     """A COLMAP model holding the ground-truth poses and intrinsics, without points.
 
@@ -196,20 +188,13 @@ def to_reconstruction(ground_truth: GroundTruth) -> pycolmap.Reconstruction:
     return reconstruction
 
 
-def project_to_rotation(matrix: np.ndarray) -> np.ndarray:
-    """The rotation nearest to `matrix` (Frobenius norm), via SVD; text rounding breaks orthonormality."""
-    u, _, vt = np.linalg.svd(matrix)
-    d = np.sign(np.linalg.det(u @ vt))
-    return u @ np.diag([1.0, 1.0, d]) @ vt
-
-
 def _rotation(matrix: np.ndarray, path: Path, line: int) -> pycolmap.Rotation3d:
     """Project a read matrix onto SO(3), refusing one that is no rotation at all."""
     orthonormal = np.abs(matrix.T @ matrix - np.eye(3)).max() < _ROTATION_TOLERANCE
     if not orthonormal or np.linalg.det(matrix) <= 0:
         raise UserError(f"{path}:{line}: the rotation matrix is not a rotation "
                         "(not orthonormal with determinant +1)")
-    return pycolmap.Rotation3d(project_to_rotation(matrix))
+    return pycolmap.Rotation3d(nearest_rotation(matrix))
 
 
 def _pinhole_camera(K: np.ndarray, size: tuple[int, int], path: Path, line: int) -> pycolmap.Camera:

@@ -245,18 +245,20 @@ def _swap_in(new: Path, output_path: Path, previous: list[Path], old: Path) -> N
 
 
 def read_model(path: str | Path) -> pycolmap.Reconstruction:
-    """A COLMAP model folder (BIN or TXT), e.g. one to continue; a UserError if it is
-    missing or cannot be read."""
+    """A COLMAP model folder (BIN or TXT); a one-line UserError if it is missing or cannot
+    be read."""
     path = Path(path)
     found = {f.name for f in path.iterdir()} if path.is_dir() else set()
     if not any({f"cameras.{e}", f"images.{e}", f"points3D.{e}"} <= found for e in ("bin", "txt")):
+        kind = "not a readable COLMAP model" if path.is_dir() else "model not found"
         raise UserError(f"no COLMAP model in {path}: expected cameras, images and points3D "
-                        f"(.bin or .txt)")
+                        f"(.bin or .txt) ({kind})")
     try:
         return pycolmap.Reconstruction(path)
     except Exception as exc:  # pycolmap: ValueError, IndexError, RuntimeError on bad files
         reason = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"cannot read the model in {path}: {reason}") from None
+        raise UserError(f"cannot read the model in {path}: {reason} (not a readable COLMAP "
+                        "model)") from None
 
 
 def write_models(reconstructions: list[pycolmap.Reconstruction], output_path: str | Path,
@@ -295,12 +297,14 @@ def _check_written(reconstruction: pycolmap.Reconstruction, folder: Path) -> Non
 
 
 def write_json(data: dict | list, path: str | Path) -> None:
-    """Write JSON through a temporary file and a rename."""
+    """Write JSON through a temporary file and a rename, so no reader sees half of it."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
+    temporary = path.with_name(f".{path.name}.{os.getpid()}.tmp")
     try:
-        tmp.write_text(json.dumps(data, indent=2) + "\n")
-        os.replace(tmp, path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        temporary.write_text(json.dumps(data, indent=2) + "\n", encoding="utf-8")
+        os.replace(temporary, path)
     except OSError as exc:
-        tmp.unlink(missing_ok=True)
-        raise UserError(f"could not write {path}: {exc.strerror or exc}") from None
+        with contextlib.suppress(OSError):  # e.g. the folder is a file: no temporary to remove
+            temporary.unlink(missing_ok=True)
+        raise UserError(f"cannot write {path}: {exc.strerror or exc}") from None

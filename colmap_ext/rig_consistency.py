@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from colmap_ext.angles import rotation_angles_deg
+from colmap_ext.geometry import rotation_angles_deg
 from colmap_ext.rigs import read_rig_config
 
 # A frame: image name -> sensor_from_rig of its camera.

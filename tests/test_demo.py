@@ -11,7 +11,8 @@ import numpy as np
 from PIL import Image
 
 from colmap_ext import evaluate
-from colmap_ext.ground_truth import read_ground_truth, read_model
+from colmap_ext.ground_truth import read_ground_truth
+from colmap_ext.model_io import read_model
 
 
 def test_demo_runs_to_completion(tmp_path: Path, record_figures, assert_scene_shows) -> None:

@@ -12,12 +12,8 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from colmap_ext.errors import UserError
-from colmap_ext.ground_truth import (
-    GroundTruth,
-    project_to_rotation,
-    read_ground_truth,
-    to_reconstruction,
-)
+from colmap_ext.geometry import nearest_rotation
+from colmap_ext.ground_truth import GroundTruth, read_ground_truth, to_reconstruction
 
 K = np.array([[1520.4, 0.0, 302.32], [0.0, 1525.9, 246.87], [0.0, 0.0, 1.0]])
 
@@ -296,7 +292,7 @@ def test_middlebury_forced_on_folder_with_two_par_files(tmp_path: Path) -> None:
 )
 def test_projection_of_rounded_rotation_is_the_nearby_rotation(axis_angle, noise) -> None:
     R = rotation(axis_angle)
-    projected = project_to_rotation(R + np.reshape(noise, (3, 3)))
+    projected = nearest_rotation(R + np.reshape(noise, (3, 3)))
     np.testing.assert_allclose(projected.T @ projected, np.eye(3), atol=1e-14)
     assert np.linalg.det(projected) == pytest.approx(1.0)
     np.testing.assert_allclose(projected, R, atol=1e-5)

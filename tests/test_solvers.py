@@ -13,6 +13,7 @@ from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 import solvers
+from colmap_ext.geometry import sampson_errors
 
 FOCAL = 1000.0  # pixels
 SIZE = 1000  # image width and height in pixels
@@ -142,14 +143,6 @@ def homogeneous(x: np.ndarray) -> np.ndarray:
     return np.hstack([x, np.ones((len(x), 1))])
 
 
-def sampson(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Sampson distance of each pair, in normalized image units."""
-    X1, X2 = homogeneous(x1), homogeneous(x2)
-    Ex1, Etx2 = X1 @ E.T, X2 @ E
-    c = np.sum(X2 * Ex1, axis=1)
-    return np.abs(c) / np.sqrt(Ex1[:, 0] ** 2 + Ex1[:, 1] ** 2 + Etx2[:, 0] ** 2 + Etx2[:, 1] ** 2)
-
-
 def pixels(x: np.ndarray) -> np.ndarray:
     return x * FOCAL + SIZE / 2
 
@@ -190,7 +183,7 @@ def test_relative_pose_recovers_truth(method, outlier_ratio):
     assert np.mean(result.inlier_mask == scene.inliers) > MIN_INLIER_AGREEMENT
     # E is [t]x R of the returned pose, and the inliers satisfy x2^T E x1 ~ 0.
     assert same_up_to_sign(result.E, essential(result.cam2_from_cam1)) < 1e-9
-    assert sampson(result.E, scene.x1, scene.x2)[result.inlier_mask].max() < MAX_ERROR
+    assert sampson_errors(result.E, scene.x1, scene.x2)[result.inlier_mask].max() < MAX_ERROR
     algebraic = np.abs(np.sum(homogeneous(scene.x2) * (homogeneous(scene.x1) @ result.E.T), 1))
     assert algebraic[result.inlier_mask].max() < 5 * MAX_ERROR
 
@@ -250,7 +243,7 @@ def test_five_point_finds_true_essential_matrix(method, min_found):
         assert len(solutions) <= 10
         for E in solutions:
             assert np.linalg.norm(E) == pytest.approx(1.0)
-            assert sampson(E, scene.x1, scene.x2).max() < 1e-9
+            assert sampson_errors(E, scene.x1, scene.x2).max() < 1e-9
             EEt = E @ E.T  # the essential-matrix constraint 2 E E^T E = tr(E E^T) E
             assert np.abs(2 * EEt @ E - np.trace(EEt) * E).max() < 1e-3
         found.append(min([same_up_to_sign(E, essential(scene.pose)) for E in solutions],

@@ -54,6 +54,22 @@ def adjustment_options(options: MapperOptions, max_iterations: int,
     return ba_options
 
 
+def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, options: MapperOptions,
+                          num_threads: int | None = None) -> None:
+    """Global adjustment, in place, of every registered pose and every point of a
+    reconstruction that no Model holds (a joined one): the options' loss and Ceres limits
+    (global_max_iterations), intrinsics constant, the gauge fixed by two cameras."""
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in reconstruction.reg_image_ids():
+        config.add_image(image_id)
+    for camera_id in reconstruction.cameras:
+        config.set_constant_cam_intrinsics(camera_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    ba_options = adjustment_options(options, options.bundle_adjustment.global_max_iterations,
+                                    num_threads=num_threads)
+    pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
+
+
 def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
                   max_iterations: int, refine_intrinsics: bool = False) -> int:
     """Adjust, on the model's reconstruction in place, the poses of `image_ids` (except

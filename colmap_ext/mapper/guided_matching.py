@@ -7,6 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
+from colmap_ext.geometry import sampson_errors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 
@@ -39,14 +40,3 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     _, unique = np.unique(other[order], return_index=True)
     keep = order[unique]
     return kps[keep], other[keep], angles[keep]
-
-
-def sampson_errors(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Sampson distance of corresponding normalized points to x2^T E x1 = 0."""
-    h1 = np.hstack([x1, np.ones((len(x1), 1))])
-    h2 = np.hstack([x2, np.ones((len(x2), 1))])
-    lines2 = h1 @ E.T  # epipolar lines in image 2 of image 1's points
-    lines1 = h2 @ E    # and in image 1 of image 2's points
-    residual = np.einsum("ij,ij->i", lines2, h2)
-    denominator = lines2[:, 0] ** 2 + lines2[:, 1] ** 2 + lines1[:, 0] ** 2 + lines1[:, 1] ** 2
-    return np.abs(residual) / np.sqrt(np.maximum(denominator, 1e-300))

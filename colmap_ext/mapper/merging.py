@@ -22,7 +22,8 @@ import numpy as np
 import pycolmap
 
 import solvers
-from colmap_ext.angles import mean_rotation, rotation_angles_deg, vector_angles_deg
+from colmap_ext.geometry import (fit_similarity, mean_rotation, rotation_angles_deg,
+                                 vector_angles_deg)
 from colmap_ext.mapper.descriptors import nearest_descriptors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
@@ -125,8 +126,8 @@ def similarity_from(a: CrossRegistration, b: CrossRegistration,
                     max_angle_deg: float) -> pycolmap.Sim3d | None:
     """The similarity (target_from_source) two cross-registrations imply, or None when they disagree: their
     rotations, or the direction between their centres, differ by more than
-    `max_angle_deg`. Rotation: the mean of both; scale: the ratio of the centres'
-    distances; translation: the mean of what each centre implies."""
+    `max_angle_deg`. Rotation: the mean of both; scale and translation: the least-squares
+    fit of the two centres under it."""
     if rotation_angles_deg((a.rotation.T @ b.rotation)[None])[0] > max_angle_deg:
         return None
     rotation = mean_rotation(np.stack([a.rotation, b.rotation]))
@@ -136,10 +137,8 @@ def similarity_from(a: CrossRegistration, b: CrossRegistration,
     if min(lengths) <= 0 or vector_angles_deg(baseline_target[None],
                                               baseline_source[None])[0] > max_angle_deg:
         return None
-    scale = lengths[0] / lengths[1]
-    translation = np.mean([r.centre_target - scale * rotation @ r.centre_source for r in (a, b)],
-                          axis=0)
-    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation)
+    return fit_similarity(np.stack([a.centre_source, b.centre_source]),
+                          np.stack([a.centre_target, b.centre_target]), rotation)
 
 
 def join(target: Model, source: Model, similarity: pycolmap.Sim3d,

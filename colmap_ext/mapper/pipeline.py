@@ -486,18 +486,28 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
         start = time.perf_counter()
         with timer("read database"):
             db = read_database(database_path)
-        _check_images(db, image_path)
+        check_images(db, image_path)
         reconstructions = reconstruct(db, options, image_names, timer, progress, existing)
         if not reconstructions:
             raise UserError(f"no model could be reconstructed: {_why_none(timer, options)}")
-        with timer("export"):
-            if options.extract_colors:
-                for reconstruction in reconstructions:
-                    reconstruction.extract_colors_for_all_images(str(image_path))
-            write_models(reconstructions, new_output, output_type)
-        summary = summarize(reconstructions, timer, time.perf_counter() - start)
-        write_json(summary, new_output / "mapper_summary.json")
+        write_result(reconstructions, new_output, image_path, options, output_type, timer, start)
     return dict(enumerate(reconstructions))
+
+
+def write_result(reconstructions: list[pycolmap.Reconstruction], output: Path,
+                 image_path: Path, options: MapperOptions, output_type: str,
+                 timer: StageTimer, start: float, **details: object) -> dict:
+    """Write the models as output/0, output/1, ... (point colours from the images unless
+    options.extract_colors is off) and output/mapper_summary.json, the summary with
+    `details` added; `start`: the run's time.perf_counter(). Returns the summary."""
+    with timer("export"):
+        if options.extract_colors:
+            for reconstruction in reconstructions:
+                reconstruction.extract_colors_for_all_images(str(image_path))
+        write_models(reconstructions, output, output_type)
+    summary = {**summarize(reconstructions, timer, time.perf_counter() - start), **details}
+    write_json(summary, output / "mapper_summary.json")
+    return summary
 
 
 def _why_none(timer: StageTimer, options: MapperOptions) -> str:
@@ -518,7 +528,7 @@ def _read_input_model(input_path: str | Path, output_path: str | Path) -> pycolm
     return read_model(input_path)
 
 
-def _check_images(db: DatabaseContents, image_path: Path) -> None:
+def check_images(db: DatabaseContents, image_path: Path) -> None:
     """The images must be there: the model's point colours are read from them."""
     missing = [image.name for image in db.images.values()
                if not (image_path / image.name).is_file()]

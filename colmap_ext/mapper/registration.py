@@ -10,7 +10,7 @@ import numpy as np
 import pycolmap
 
 import solvers
-from colmap_ext.mapper.guided_matching import sampson_errors
+from colmap_ext.geometry import sampson_errors
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 

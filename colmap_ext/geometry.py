@@ -1,0 +1,62 @@
+"""Geometry shared by the mapper, the hierarchical mapper and the evaluation: angles of
+rotations and between vectors, rotations nearest to a matrix, similarity fits and
+Sampson errors."""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+
+
+def rotation_angles_deg(R: np.ndarray) -> np.ndarray:
+    """Angles of rotations (n,3,3) in degrees, as atan2(sin, cos): exact near 0 where arccos is not."""
+    cos = (np.trace(R, axis1=1, axis2=2) - 1) / 2
+    skew = np.stack([R[:, 2, 1] - R[:, 1, 2], R[:, 0, 2] - R[:, 2, 0], R[:, 1, 0] - R[:, 0, 1]], axis=1)
+    sin = np.linalg.norm(skew, axis=1) / 2
+    return np.degrees(np.arctan2(sin, cos))
+
+
+def vector_angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Angles between rows of a and b (n,3) in degrees, as atan2(|a x b|, a.b)."""
+    return np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), np.sum(a * b, axis=1)))
+
+
+def nearest_rotation(matrix: np.ndarray) -> np.ndarray:
+    """The rotation nearest to a 3x3 `matrix` in the Frobenius norm (its SVD, the smallest
+    singular direction flipped where the determinant would be -1)."""
+    u, _, vt = np.linalg.svd(matrix)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+
+
+def mean_rotation(rotations: np.ndarray) -> np.ndarray:
+    """The chordal mean of `rotations` (n,3,3): the rotation nearest to their sum."""
+    return nearest_rotation(np.sum(rotations, axis=0))
+
+
+def fit_similarity(source: np.ndarray, target: np.ndarray,
+                   rotation: np.ndarray | None = None) -> pycolmap.Sim3d:
+    """The least-squares similarity taking `source` points (n,3) onto `target` (Umeyama
+    1991); with `rotation` given, its scale and translation alone.
+
+    Not pycolmap.estimate_sim3d: it refuses 2 points (pycolmap 4.2.1: "Check failed:
+    src.size() >= kMinNumSamples (2 vs. 3)"), which a 2-view model under evaluation and
+    two cross-registrations (merging.py) have, and it cannot keep a given rotation."""
+    mean_source, mean_target = source.mean(axis=0), target.mean(axis=0)
+    offsets_source, offsets_target = source - mean_source, target - mean_target
+    if rotation is None:
+        rotation = nearest_rotation(offsets_target.T @ offsets_source)
+    moved = offsets_source @ rotation.T
+    scale = np.sum(offsets_target * moved) / max(np.sum(offsets_source ** 2), 1e-300)
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation),
+                          mean_target - scale * rotation @ mean_source)
+
+
+def sampson_errors(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
+    """Sampson distance of corresponding normalized points to x2^T E x1 = 0."""
+    h1 = np.hstack([x1, np.ones((len(x1), 1))])
+    h2 = np.hstack([x2, np.ones((len(x2), 1))])
+    lines2 = h1 @ E.T  # epipolar lines in image 2 of image 1's points
+    lines1 = h2 @ E    # and in image 1 of image 2's points
+    residual = np.einsum("ij,ij->i", lines2, h2)
+    denominator = lines2[:, 0] ** 2 + lines2[:, 1] ** 2 + lines1[:, 0] ** 2 + lines1[:, 1] ** 2
+    return np.abs(residual) / np.sqrt(np.maximum(denominator, 1e-300))

@@ -1,0 +1,87 @@
+"""The hierarchical mapper from a database in memory to its models: partition, map the
+clusters, join and adjust."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from typing import Any
+
+import pycolmap
+
+from colmap_ext.database import DatabaseContents
+from colmap_ext.errors import UserError
+from colmap_ext.hierarchical_mapper.clusters import ClusterModel, database_subset, map_cluster
+from colmap_ext.hierarchical_mapper.joining import join, spanning_trees
+from colmap_ext.hierarchical_mapper.options import HierarchicalOptions
+from colmap_ext.hierarchical_mapper.partition import partition
+from colmap_ext.mapper.bundle_adjustment import adjust_reconstruction
+from colmap_ext.mapper.cli import options_from_flags
+from colmap_ext.mapper.initial_pair import check_requested_pair
+from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.pipeline import StageTimer
+
+
+@dataclass(frozen=True)
+class ClusterReport:
+    """What one cluster task did: its images, the images its models registered, and
+    its wall time in the worker."""
+
+    num_images: int
+    num_registered: int
+    seconds: float
+
+
+def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
+                         options: HierarchicalOptions, cluster: Any = None,
+                         timer: StageTimer | None = None, progress: bool = True
+                         ) -> tuple[list[pycolmap.Reconstruction], list[ClusterReport]]:
+    """Partition, map every cluster (Ray tasks on `cluster`, a distributed.Cluster, else
+    a local pool), join and adjust. Returns the models, largest first (nothing
+    written), and a report per cluster. The command maps with MAPPER_DEFAULTS under its
+    flags."""
+    from colmap_ext.distributed import run_local_or_on_cluster
+
+    timer = timer or StageTimer()
+    check_requested_pair(db.images, mapper_options)
+    with timer("partition"):
+        clusters = partition(db, options)
+    if not clusters:
+        raise UserError("no two images share a verified pair: nothing to map (run feature "
+                        "matching first)")
+    cores = os.cpu_count() or 1
+    # A Ray task holds one CPU; a local pool shares this machine's cores.
+    workers = 1 if cluster is not None else min(options.workers(), len(clusters))
+    threads = 1 if cluster is not None else max(1, cores // workers)
+    task_options = options_from_flags({"Mapper.num_threads": threads}, base=mapper_options)
+    arguments = [(index, database_subset(db, ids), task_options.choosing_initial_pair(ids),
+                  threads) for index, ids in enumerate(clusters)]
+    models: list[ClusterModel] = []
+    reports: list[ClusterReport] = []
+    with timer("cluster mapping"):
+        results = run_local_or_on_cluster(cluster, map_cluster, arguments, workers,
+                                          desc=f"map {len(clusters)} clusters",
+                                          progress=progress)
+        for index, cluster_models, seconds in sorted(results, key=lambda r: r[0]):
+            models += cluster_models
+            reports.append(ClusterReport(
+                len(clusters[index]), sum(len(m.image_ids) for m in cluster_models), seconds))
+    with timer("merging"):
+        groups = spanning_trees(models, options)
+        reconstructions = [join(db, models, group) for group in groups]
+    with timer("bundle adjustment"):
+        for reconstruction in reconstructions:
+            adjust_reconstruction(reconstruction, mapper_options, cores)
+            drop_far_observations(reconstruction, options.max_reproj_error_px)
+    reconstructions = [r for r in reconstructions if r.num_reg_images() >= 2]
+    return sorted(reconstructions, key=lambda r: (-r.num_reg_images(), -r.num_points3D())), \
+        reports
+
+
+def drop_far_observations(reconstruction: pycolmap.Reconstruction, max_error_px: float) -> None:
+    """Drop the observations reprojecting farther than `max_error_px`, and with them the
+    points left with one (COLMAP's ObservationManager)."""
+    manager = pycolmap.ObservationManager(reconstruction)
+    manager.filter_points3D_with_large_reprojection_error(
+        max_error_px, set(reconstruction.point3D_ids()))
+    reconstruction.update_point_3d_errors()
