@@ -31,6 +31,7 @@ import pycolmap
 from colmap_ext.angles import mean_rotation, rotation_angles_deg, vector_angles_deg
 from colmap_ext.database import DatabaseContents, check_database_file, read_database
 from colmap_ext.errors import UserError
+from colmap_ext.executors import Executor, LocalExecutor
 from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from_flags
 from colmap_ext.mapper.bundle_adjustment import adjustment_options, posed_images
 from colmap_ext.mapper.initial_pair import check_requested_pair
@@ -450,15 +451,13 @@ class ClusterReport:
 
 
 def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
-                         options: HierarchicalOptions, cluster: Any = None,
+                         options: HierarchicalOptions, cluster: Executor | None = None,
                          timer: StageTimer | None = None, progress: bool = True
                          ) -> tuple[list[pycolmap.Reconstruction], list[ClusterReport]]:
     """Partition, map every cluster (Ray tasks on `cluster`, a distributed.Cluster, else
-    a local pool), join and adjust. Returns the models, largest first (nothing
+    a pool of local processes), join and adjust. Returns the models, largest first (nothing
     written), and a report per cluster. The command maps with MAPPER_DEFAULTS under its
     flags."""
-    from colmap_ext.distributed import run_local_or_on_cluster
-
     timer = timer or StageTimer()
     check_requested_pair(db.images, mapper_options)
     with timer("partition"):
@@ -476,9 +475,9 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     models: list[ClusterModel] = []
     reports: list[ClusterReport] = []
     with timer("cluster mapping"):
-        results = run_local_or_on_cluster(cluster, map_cluster, arguments, workers,
-                                          desc=f"map {len(clusters)} clusters",
-                                          progress=progress)
+        executor = cluster or LocalExecutor(workers, processes=True)
+        results = executor.map(map_cluster, arguments, len(arguments),
+                               desc=f"map {len(clusters)} clusters", progress=progress)
         for index, cluster_models, seconds in sorted(results, key=lambda r: r[0]):
             models += cluster_models
             reports.append(ClusterReport(
