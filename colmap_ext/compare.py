@@ -58,6 +58,7 @@ from colmap_ext.mapper.flags import random_seed
 from colmap_ext.model_io import (MAPPER_OUTPUT, TEMPORARY_PREFIX, OutputLayout, is_file,
                                  replacing, write_json, write_models)
 from colmap_ext.plots import plot_errors
+from colmap_ext.timing import StageTimer
 
 MAPPERS = ("ours", "colmap_incremental", "colmap_global")
 REPORT_NAME = "report.json"
@@ -121,7 +122,7 @@ def run_mapper(name: str, database_path: Path, image_path: Path, output_path: Pa
     """
     runner = {"ours": _run_ours, "colmap_incremental": _run_colmap_incremental,
               "colmap_global": _run_colmap_global}[name]
-    timing = _Stopwatch()
+    timing = StageTimer()
     try:
         reconstructions = runner(database_path, image_path, output_path, seed, progress,
                                  num_threads, timing)
@@ -129,25 +130,10 @@ def run_mapper(name: str, database_path: Path, image_path: Path, output_path: Pa
         message = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
         if not isinstance(exc, UserError):
             message = f"{type(exc).__name__}: {message}"
-        return MapperRun([], timing.seconds, message)
+        return MapperRun([], timing.seconds["mapping"], message)
     if not reconstructions:
-        return MapperRun([], timing.seconds, "no model could be reconstructed")
-    return MapperRun(reconstructions, timing.seconds)
-
-
-class _Stopwatch:
-    """Wall time of the blocks run under it."""
-
-    def __init__(self) -> None:
-        self.seconds = 0.0
-
-    @contextmanager
-    def __call__(self) -> Iterator[None]:
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds += time.perf_counter() - start
+        return MapperRun([], timing.seconds["mapping"], "no model could be reconstructed")
+    return MapperRun(reconstructions, timing.seconds["mapping"])
 
 
 def _largest_first(reconstructions: dict[int, pycolmap.Reconstruction]) -> list[pycolmap.Reconstruction]:
@@ -156,9 +142,9 @@ def _largest_first(reconstructions: dict[int, pycolmap.Reconstruction]) -> list[
 
 
 def _run_ours(database_path: Path, image_path: Path, output_path: Path, seed: int,
-              progress: bool, num_threads: int, timing: _Stopwatch) -> list[pycolmap.Reconstruction]:
+              progress: bool, num_threads: int, timing: StageTimer) -> list[pycolmap.Reconstruction]:
     options = MapperOptions(seed=seed, num_threads=num_threads)
-    with timing():
+    with timing("mapping"):
         reconstructions = run_ours(database_path, image_path, output_path, options,
                                    overwrite=True, progress=progress)
     return _largest_first(reconstructions)
@@ -178,7 +164,7 @@ def _write_largest_first(reconstructions: dict[int, pycolmap.Reconstruction],
 
 def _run_colmap_incremental(database_path: Path, image_path: Path, output_path: Path, seed: int,
                             progress: bool, num_threads: int,
-                            timing: _Stopwatch) -> list[pycolmap.Reconstruction]:
+                            timing: StageTimer) -> list[pycolmap.Reconstruction]:
     camera_ids, num_images = fix_intrinsics_in_database(database_path)
     options = colmap_incremental_options(camera_ids, seed, num_threads)
     bar = tqdm(total=num_images, desc="registered", unit="image", disable=not progress)
@@ -188,7 +174,7 @@ def _run_colmap_incremental(database_path: Path, image_path: Path, output_path: 
 
     staging = Path(tempfile.mkdtemp(prefix=".colmap-ext-incremental-", dir=database_path.parent))
     try:
-        with quiet_colmap_logs(), timing():
+        with quiet_colmap_logs(), timing("mapping"):
             reconstructions = pycolmap.incremental_mapping(
                 database_path, image_path, staging, options,
                 initial_image_pair_callback=advance(2), next_image_callback=advance(1))
@@ -200,12 +186,12 @@ def _run_colmap_incremental(database_path: Path, image_path: Path, output_path: 
 
 def _run_colmap_global(database_path: Path, image_path: Path, output_path: Path, seed: int,
                        progress: bool, num_threads: int,
-                       timing: _Stopwatch) -> list[pycolmap.Reconstruction]:
+                       timing: StageTimer) -> list[pycolmap.Reconstruction]:
     fix_intrinsics_in_database(database_path)
     options = colmap_global_options(seed, num_threads)
     staging = Path(tempfile.mkdtemp(prefix=".colmap-ext-global-", dir=database_path.parent))
     try:
-        with quiet_colmap_logs(), timing():
+        with quiet_colmap_logs(), timing("mapping"):
             reconstructions = pycolmap.global_mapping(database_path, image_path, staging, options)
         return _write_largest_first(reconstructions, output_path)
     finally:

@@ -14,9 +14,10 @@ from pathlib import Path
 
 from colmap_ext import evaluate, reconstruct
 from colmap_ext.errors import UserError
-from colmap_ext.features import list_images
+from colmap_ext.features import FeatureOptions, list_images
 from colmap_ext.ground_truth import read_ground_truth
 from colmap_ext.mapper.flags import random_seed
+from colmap_ext.matching import MatchingOptions
 from colmap_ext.model_io import (OutputLayout, holds_only, is_file, is_model_folder, moved,
                                  read_model, replacing)
 from colmap_ext.synthetic.render import render_images, write_ground_truth
@@ -58,8 +59,9 @@ def main(output_path: str, num_images: int = 24, seed: int = 0, overwrite: bool 
         write_ground_truth(scene, truth)
         workspace.mkdir()
         summary = reconstruct.run_stages(
-            images, workspace, partial(moved, new=new_root, final=root), scene.camera.model.name,
-            list(scene.camera.params), list_images(images), seed, start)
+            images, workspace, partial(moved, new=new_root, final=root), list_images(images),
+            FeatureOptions(scene.camera.model.name, list(scene.camera.params)),
+            MatchingOptions(seed=seed), start)
         print(reconstruct.format_summary(summary, root / "workspace"))
         print()
         report = evaluate.evaluate_and_write(

@@ -1,11 +1,11 @@
 """SIFT features with known intrinsics and the paper's adaptive detector threshold.
 
-pycolmap's extractor writes every image with the given camera (model and parameters
-fixed by the user) and optional masks. Then, as in the paper, every image with fewer
-than `min_num_keypoints` keypoints is extracted again with half the SIFT peak
-threshold, down to a floor, and its features are replaced in the database. The
-re-extraction runs pycolmap's own extractor on a scratch database, so the new rows
-are exactly what COLMAP writes (keypoint format, masking, image reading).
+pycolmap imports every image with the given camera (model and parameters fixed by
+the user). Chunks of images are then tasks of an executor (threads here, or Ray tasks):
+each runs pycolmap's own extractor on a scratch database, so the rows are exactly what
+COLMAP writes (keypoint format, masking, image reading), and, as in the paper, extracts
+every image with fewer than `min_num_keypoints` keypoints again with half the SIFT
+peak threshold, down to a floor. The features are written here as chunks complete.
 
 All input is checked before any work: a bad camera or an unreadable image is a
 one-line `UserError`, not a COLMAP log line halfway through.
@@ -16,9 +16,9 @@ from __future__ import annotations
 import contextlib
 import math
 import os
-import sqlite3
 import statistics
 import tempfile
+import threading
 import time
 from collections.abc import Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 from PIL import Image
-from tqdm import tqdm
 
 from colmap_ext.errors import UserError
+from colmap_ext.executors import Executor, ImageSource, LocalExecutor, chunks, items_per_task
 
 CAMERA_MODES = {"single": pycolmap.CameraMode.SINGLE, "per_folder": pycolmap.CameraMode.PER_FOLDER}
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
@@ -39,6 +39,8 @@ DEFAULT_MIN_NUM_KEYPOINTS = 500
 DEFAULT_PEAK_THRESHOLD = pycolmap.SiftExtractionOptions().peak_threshold  # 0.02 / 3
 # Floor of the halving (0.0033, 0.0017, then 0.00125): lower, SIFT mostly finds noise.
 MIN_PEAK_THRESHOLD = 0.00125
+# Images per extraction task, at most (fewer when that leaves some workers idle).
+MAX_IMAGES_PER_TASK = 16
 
 Features = tuple[np.ndarray, pycolmap.FeatureDescriptors]
 
@@ -78,15 +80,34 @@ class FeatureSummary:
         }
 
 
-@contextlib.contextmanager
-def quiet_colmap_logs() -> Iterator[None]:
-    """Silence COLMAP's per-image INFO lines while our progress bars report; warnings stay."""
-    previous = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(previous, int(pycolmap.logging.Level.WARNING))
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = previous
+class _QuietLogs:
+    """COLMAP's log level (one per process) raised while any thread is inside, and put
+    back when the last one leaves: tasks in threads overlap."""
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.inside = 0
+        self.previous = 0
+
+    @contextlib.contextmanager
+    def __call__(self) -> Iterator[None]:
+        with self.lock:
+            if not self.inside:
+                self.previous = pycolmap.logging.minloglevel
+                pycolmap.logging.minloglevel = max(self.previous,
+                                                   int(pycolmap.logging.Level.WARNING))
+            self.inside += 1
+        try:
+            yield
+        finally:
+            with self.lock:
+                self.inside -= 1
+                if not self.inside:
+                    pycolmap.logging.minloglevel = self.previous
+
+
+# Silence COLMAP's per-image INFO lines while our progress bars report; warnings stay.
+quiet_colmap_logs = _QuietLogs()
 
 
 def check_camera(camera_model: str, camera_params: str | Sequence[float]) -> list[float]:
@@ -209,60 +230,127 @@ def posix_parent(name: str) -> str:
     return name.rpartition("/")[0]
 
 
-def extract_features(database_path: str | os.PathLike, image_path: str | os.PathLike, *,
-                     camera_model: str, camera_params: str | Sequence[float],
-                     camera_mode: str = "single", mask_path: str | os.PathLike | None = None,
-                     min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS,
-                     image_names: Sequence[str] | None = None,
-                     domain_size_pooling: bool = False,
-                     progress: bool = True) -> FeatureSummary:
-    """Extract SIFT features of every image into a new database, with the adaptive rule;
-    `domain_size_pooling`: COLMAP's DSP-SIFT descriptors."""
+@dataclass
+class FeatureOptions:
+    """Feature extraction (extract_features): the known camera, masks, and the adaptive
+    detector threshold."""
+
+    # A COLMAP camera model with a focal length, e.g. PINHOLE, OPENCV.
+    camera_model: str
+    # Its parameters in COLMAP's order: numbers, or a string "fx,fy,cx,cy".
+    camera_params: str | Sequence[float]
+    # One of CAMERA_MODES: one camera for all images, or one per sub-folder.
+    camera_mode: str = "single"
+    # COLMAP masks: MASK_PATH/<image name>.png, 0 = ignore.
+    mask_path: str | os.PathLike | None = None
+    # Images with fewer keypoints are extracted again with a lower SIFT peak threshold.
+    min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS
+    # COLMAP's DSP-SIFT descriptors.
+    domain_size_pooling: bool = False
+
+    def check(self) -> None:
+        """The camera and the keypoint minimum (the images: check_images)."""
+        self.params()
+        minimum = self.min_num_keypoints
+        if isinstance(minimum, bool) or not isinstance(minimum, int) or minimum < 0:
+            raise UserError(f"min_num_keypoints must be a non-negative integer, got {minimum!r}")
+
+    def params(self) -> list[float]:
+        """The camera parameters as floats, checked against the camera model."""
+        return check_camera(self.camera_model, self.camera_params)
+
+    def reader_options(self, mask_path: str | os.PathLike | None) -> pycolmap.ImageReaderOptions:
+        """pycolmap's reader with the camera fixed and the masks in `mask_path`."""
+        reader = pycolmap.ImageReaderOptions(
+            camera_model=self.camera_model, camera_params=",".join(repr(p) for p in self.params()))
+        if mask_path is not None:
+            reader.mask_path = Path(mask_path)
+        return reader
+
+
+def extract_features(database_path: str | os.PathLike, image_path: str | os.PathLike,
+                     options: FeatureOptions, *, image_names: Sequence[str] | None = None,
+                     executor: Executor | None = None, progress: bool = True) -> FeatureSummary:
+    """Extract SIFT features of every image (or of `image_names`) into a new database,
+    with the adaptive rule; chunks of images are tasks of `executor` (default: this
+    machine's threads), written here as they complete."""
     start = time.perf_counter()
-    params = check_camera(camera_model, camera_params)
-    if isinstance(min_num_keypoints, bool) or not isinstance(min_num_keypoints, int) \
-            or min_num_keypoints < 0:
-        raise UserError(f"min_num_keypoints must be a non-negative integer, "
-                        f"got {min_num_keypoints!r}")
+    options.check()
     names = list_images(image_path, image_names)
-    check_images(image_path, names, camera_mode, camera_model, params, mask_path)
+    check_images(image_path, names, options.camera_mode, options.camera_model, options.params(),
+                 options.mask_path)
     check_new_database(Path(database_path))
-
-    reader = pycolmap.ImageReaderOptions(camera_model=camera_model,
-                                         camera_params=",".join(repr(p) for p in params))
-    if mask_path is not None:
-        reader.mask_path = Path(mask_path)
     with quiet_colmap_logs():
-        # Importing first gives image ids in name order; the threaded extractor alone
-        # numbers images in the order its threads finish, which varies from run to run.
+        # Importing first gives image ids in name order, and the cameras.
         pycolmap.Database.open(database_path).close()
-        pycolmap.import_images(database_path, image_path, camera_mode=CAMERA_MODES[camera_mode],
-                               image_names=names, options=reader)
-        pycolmap.extract_features(database_path, image_path, image_names=names,
-                                  camera_mode=CAMERA_MODES[camera_mode], reader_options=reader,
-                                  extraction_options=extraction_options(None,
-                                                                        domain_size_pooling),
-                                  device=pycolmap.Device.cpu)
-    initial = keypoint_counts(database_path, names)
-    thresholds = dict.fromkeys(names, DEFAULT_PEAK_THRESHOLD)
-    final = dict(initial)
-    low = [name for name in names if initial[name] < min_num_keypoints]
-    if low:
-        replacements = reextract(image_path, low, reader, min_num_keypoints, thresholds,
-                                 progress, domain_size_pooling)
-        replace_features(database_path, replacements)
-        final.update({name: len(keypoints) for name, (keypoints, _) in replacements.items()})
-    return FeatureSummary(initial, final, thresholds, time.perf_counter() - start)
+        pycolmap.import_images(database_path, image_path,
+                               camera_mode=CAMERA_MODES[options.camera_mode], image_names=names,
+                               options=options.reader_options(options.mask_path))
+    executor = executor or LocalExecutor()
+    groups = chunks(names, items_per_task(len(names), MAX_IMAGES_PER_TASK, executor.num_workers))
+    sources = executor.image_sources(str(image_path), None if options.mask_path is None
+                                     else str(options.mask_path), groups)
+    initial: dict[str, int] = {}
+    thresholds: dict[str, float] = {}
+    final: dict[str, int] = {}
+    with pycolmap.Database.open(database_path) as db:
+        ids = {image.name: image.image_id for image in db.read_all_images()}
+        for chunk in executor.map(extract_chunk, ((source, list(group), options,
+                                                   executor.threads_per_task)
+                                                  for source, group in zip(sources, groups)),
+                                  len(groups), desc="extract", progress=progress):
+            with pycolmap.DatabaseTransaction(db):
+                for name, (keypoints, descriptors) in chunk.features.items():
+                    db.write_keypoints(ids[name], keypoints)
+                    db.write_descriptors(ids[name], pycolmap.FeatureDescriptors(
+                        pycolmap.FeatureExtractorType.SIFT, descriptors))
+                    final[name] = len(keypoints)
+            initial.update(chunk.initial_keypoints)
+            thresholds.update(chunk.peak_thresholds)
+    in_name_order = [{name: counts[name] for name in names}
+                     for counts in (initial, final, thresholds)]
+    return FeatureSummary(*in_name_order, time.perf_counter() - start)
 
 
-def extraction_options(peak_threshold: float | None,
-                       domain_size_pooling: bool = False) -> pycolmap.FeatureExtractionOptions:
-    """CPU SIFT on all cores (said explicitly, which also spares COLMAP's memory warning)."""
+@dataclass(frozen=True)
+class ExtractedChunk:
+    """What one extraction task found: per image name its final keypoints (n, 6) float32
+    and descriptors (n, 128) uint8, its keypoint count at the default threshold, and the
+    peak threshold of the final features."""
+
+    features: dict[str, tuple[np.ndarray, np.ndarray]]
+    initial_keypoints: dict[str, int]
+    peak_thresholds: dict[str, float]
+
+
+def extract_chunk(source: ImageSource, names: list[str], options: FeatureOptions,
+                  num_threads: int) -> ExtractedChunk:
+    """The task: SIFT of `names` at COLMAP's peak threshold, then the adaptive rule, in
+    `num_threads` threads. `source`: where this process reads the images (an
+    executor's image_sources)."""
+    with source.local() as (image_path, mask_path):
+        reader = options.reader_options(mask_path)
+        found = extract_to_memory(image_path, names, reader, DEFAULT_PEAK_THRESHOLD,
+                                  options.domain_size_pooling, num_threads)
+        initial = {name: len(found[name][0]) for name in names}
+        thresholds = dict.fromkeys(names, DEFAULT_PEAK_THRESHOLD)
+        low = [name for name in names if initial[name] < options.min_num_keypoints]
+        if low:
+            found.update(reextract(image_path, low, reader, options.min_num_keypoints,
+                                   thresholds, options.domain_size_pooling, num_threads))
+    features = {name: (np.asarray(keypoints, np.float32), np.asarray(descriptors.data, np.uint8))
+                for name, (keypoints, descriptors) in found.items()}
+    return ExtractedChunk(features, initial, thresholds)
+
+
+def extraction_options(peak_threshold: float, domain_size_pooling: bool,
+                       num_threads: int) -> pycolmap.FeatureExtractionOptions:
+    """CPU SIFT in the task's threads (said explicitly, which also spares COLMAP's
+    memory warning)."""
     options = pycolmap.FeatureExtractionOptions()
-    options.num_threads = os.cpu_count() or 1
+    options.num_threads = num_threads
     options.sift.domain_size_pooling = domain_size_pooling
-    if peak_threshold is not None:
-        options.sift.peak_threshold = peak_threshold
+    options.sift.peak_threshold = peak_threshold
     return options
 
 
@@ -281,52 +369,27 @@ def check_new_database(database_path: Path) -> None:
                             "extract into a new database")
 
 
-def image_ids(db: pycolmap.Database, names: Sequence[str], context: str = "") -> dict[str, int]:
-    """Image ids by name; an image COLMAP skipped is an error naming it."""
-    ids = {image.name: image.image_id for image in db.read_all_images()}
-    missing = [name for name in names if name not in ids]
-    if missing:
-        raise UserError(f"COLMAP could not extract features from {missing[0]}{context}"
-                        + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
-    return ids
-
-
-def keypoint_counts(database_path: str | os.PathLike, names: Sequence[str]) -> dict[str, int]:
-    """Keypoints per image name; an image COLMAP skipped is an error naming it."""
-    db = pycolmap.Database.open(database_path)
-    try:
-        ids = image_ids(db, names)
-        return {name: db.num_keypoints_for_image(ids[name]) for name in names}
-    finally:
-        db.close()
-
-
 def reextract(image_path: str | os.PathLike, names: list[str],
               reader: pycolmap.ImageReaderOptions, min_num_keypoints: int,
-              thresholds: dict[str, float], progress: bool,
-              domain_size_pooling: bool = False) -> dict[str, Features]:
+              thresholds: dict[str, float], domain_size_pooling: bool,
+              num_threads: int) -> dict[str, Features]:
     """Halve the peak threshold of the images still short of keypoints until each has
     enough or the floor is reached; updates `thresholds`, returns the last features."""
     features: dict[str, Features] = {}
     pending = list(names)
     threshold = DEFAULT_PEAK_THRESHOLD
-    with tqdm(total=len(names), desc="lower SIFT threshold", unit="image",
-              disable=not progress) as bar:
-        while pending and threshold > MIN_PEAK_THRESHOLD:
-            threshold = max(threshold / 2, MIN_PEAK_THRESHOLD)
-            features.update(extract_to_memory(image_path, pending, reader, threshold,
-                                              domain_size_pooling))
-            thresholds.update(dict.fromkeys(pending, threshold))
-            still_low = [name for name in pending if len(features[name][0]) < min_num_keypoints]
-            bar.update(len(pending) - len(still_low))
-            pending = still_low
-        bar.update(len(pending))
+    while pending and threshold > MIN_PEAK_THRESHOLD:
+        threshold = max(threshold / 2, MIN_PEAK_THRESHOLD)
+        features.update(extract_to_memory(image_path, pending, reader, threshold,
+                                          domain_size_pooling, num_threads))
+        thresholds.update(dict.fromkeys(pending, threshold))
+        pending = [name for name in pending if len(features[name][0]) < min_num_keypoints]
     return features
 
 
 def extract_to_memory(image_path: str | os.PathLike, names: list[str],
                       reader: pycolmap.ImageReaderOptions, peak_threshold: float,
-                      domain_size_pooling: bool = False) -> dict[str, Features]:
+                      domain_size_pooling: bool, num_threads: int) -> dict[str, Features]:
     """Keypoints and descriptors of `names` from pycolmap's extractor on a scratch
     database (one camera per image there: only the features are kept)."""
     with tempfile.TemporaryDirectory(prefix="colmap-ext-sift-") as scratch:
@@ -336,37 +399,16 @@ def extract_to_memory(image_path: str | os.PathLike, names: list[str],
                                       camera_mode=pycolmap.CameraMode.PER_IMAGE,
                                       reader_options=reader,
                                       extraction_options=extraction_options(
-                                          peak_threshold, domain_size_pooling),
+                                          peak_threshold, domain_size_pooling, num_threads),
                                       device=pycolmap.Device.cpu)
-        db = pycolmap.Database.open(database_path)
-        try:
-            ids = image_ids(db, names, f" again (peak threshold {peak_threshold:g})")
+        with pycolmap.Database.open(database_path) as db:
+            ids = {image.name: image.image_id for image in db.read_all_images()}
+            missing = [name for name in names if name not in ids]
+            if missing:
+                again = "" if peak_threshold == DEFAULT_PEAK_THRESHOLD \
+                    else f" again (peak threshold {peak_threshold:g})"
+                raise UserError(f"COLMAP could not extract features from {missing[0]}{again}"
+                                + (f" (and {len(missing) - 1} more)" if len(missing) > 1
+                                   else ""))
             return {name: (db.read_keypoints(ids[name]), db.read_descriptors(ids[name]))
                     for name in names}
-        finally:
-            db.close()
-
-
-def replace_features(database_path: str | os.PathLike, features: dict[str, Features]) -> None:
-    """Replace the keypoints and descriptors of the named images.
-
-    pycolmap 4.2.1 can update keypoints but not descriptors, so both old rows are
-    deleted with SQL (COLMAP's schema: tables keyed by image_id) and rewritten by pycolmap.
-    """
-    db = pycolmap.Database.open(database_path)
-    try:
-        ids = {image.name: image.image_id for image in db.read_all_images()}
-    finally:
-        db.close()
-    rows = [(ids[name],) for name in features]
-    with contextlib.closing(sqlite3.connect(database_path)) as connection, connection:
-        connection.executemany("DELETE FROM keypoints WHERE image_id = ?", rows)
-        connection.executemany("DELETE FROM descriptors WHERE image_id = ?", rows)
-    db = pycolmap.Database.open(database_path)
-    try:
-        with pycolmap.DatabaseTransaction(db):
-            for name, (keypoints, descriptors) in features.items():
-                db.write_keypoints(ids[name], keypoints)
-                db.write_descriptors(ids[name], descriptors)
-    finally:
-        db.close()

@@ -16,26 +16,28 @@ inliers, as COLMAP does.
 Matchers: exhaustive (every pair), sequential (each image with the next `overlap` in
 name order, plus COLMAP's quadratic overlap) and, for rings such as turntables, loop
 closure: the last images matched with the first ones, through an imported pair list.
+The pairs are matched and verified in blocks, each a task of an executor (threads
+here, or Ray tasks), and written here as the blocks complete.
 """
 
 from __future__ import annotations
 
-import functools
 import os
 import tempfile
 import time
 import zlib
-from collections.abc import Iterable
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pycolmap
-from tqdm import tqdm
 
 import solvers
 from colmap_ext.errors import UserError
+from colmap_ext.executors import Executor, LocalExecutor, chunks, items_per_task
 from colmap_ext.features import quiet_colmap_logs
 
 MATCHERS = ("auto", "exhaustive", "sequential")
@@ -50,10 +52,14 @@ EXACT_BLOCK_PRODUCTS = 2**22
 # the length of a stored uint8 descriptor.
 SIFT_MAX_DISTANCE = 0.7
 SIFT_DESCRIPTOR_NORM = 512.0
-# Images whose descriptors exact matching keeps at once (pairs come in image order).
-EXACT_CACHED_IMAGES = 64
+# Pairs per matching task, at most (fewer when that leaves some workers idle).
+MAX_PAIRS_PER_TASK = 500
+# Pairs are grouped by blocks of this many images (in name order) on both sides, so a
+# task needs the features of at most two blocks.
+PAIR_BLOCK_IMAGES = 32
 
 Config = pycolmap.TwoViewGeometryConfiguration
+Features = tuple[np.ndarray, np.ndarray]  # keypoints (n, 6) float32, descriptors (n, 128) uint8
 
 
 @dataclass(frozen=True)
@@ -90,35 +96,195 @@ class MatchingSummary:
         }
 
 
-def match_features(database_path: str | os.PathLike, *, matcher: str = "auto",
-                   overlap: int = 10, loop_closure: bool = True, max_ratio: float = 0.8,
-                   max_error_px: float = 4.0, seed: int | None = 0, exact: bool = False,
-                   progress: bool = True) -> MatchingSummary:
-    """Match the database's features and verify every new pair with known intrinsics.
+@dataclass
+class MatchingOptions:
+    """Feature matching and its verification with known intrinsics (match_features)."""
 
-    `max_error_px` is the Sampson error threshold of the verification, in pixels
-    (COLMAP's default, 4); `seed` makes the RANSAC of every pair reproducible; `exact`
-    matches by brute force instead of FAISS: the same matches on every run and machine.
-    """
-    check_options(matcher, overlap, max_ratio, max_error_px, seed)
+    # One of MATCHERS: "auto" is exhaustive up to AUTO_EXHAUSTIVE_MAX_IMAGES, sequential beyond.
+    matcher: str = "auto"
+    # Sequential matching: each image with the next `overlap` in name order.
+    overlap: int = 10
+    # Sequential matching: the last images with the first ones too (rings, turntables).
+    loop_closure: bool = True
+    # SIFT ratio test (the paper's 1.25, inverted).
+    max_ratio: float = 0.8
+    # Sampson error threshold (px) of the verification (COLMAP's default).
+    max_error_px: float = 4.0
+    # Seed of every pair's RANSAC (pair_seed); None: random.
+    seed: int | None = 0
+    # Match descriptors by brute force, not by pycolmap's FAISS index: the same matches
+    # on every run and machine.
+    exact: bool = False
+
+    def check(self) -> None:
+        """One-line errors for options pycolmap or the solvers would reject less clearly."""
+        if self.matcher not in MATCHERS:
+            raise UserError(f"unknown matcher {self.matcher!r}; choose one of "
+                            f"{', '.join(MATCHERS)}")
+        if isinstance(self.overlap, bool) or not isinstance(self.overlap, int) \
+                or self.overlap < 1:
+            raise UserError(f"overlap must be a positive integer, got {self.overlap!r}")
+        if not 0 < self.max_ratio <= 1:
+            raise UserError(f"max_ratio must be in (0, 1], got {self.max_ratio!r}")
+        if not (np.isfinite(self.max_error_px) and self.max_error_px > 0):
+            raise UserError(f"max_error_px must be a positive number, got {self.max_error_px!r}")
+        if self.seed is not None and not 0 <= self.seed < 2**63:
+            raise UserError(f"seed must be a non-negative integer, got {self.seed!r}")
+
+
+def match_features(database_path: str | os.PathLike, options: MatchingOptions | None = None,
+                   *, executor: Executor | None = None, progress: bool = True
+                   ) -> MatchingSummary:
+    """Match the database's features and verify every pair not matched before with the
+    known intrinsics. Blocks of pairs are tasks of `executor` (default: this machine's
+    threads), each matched and verified there and written here as it completes."""
+    options = options or MatchingOptions()
+    options.check()
     database_path = Path(database_path)
     names = image_names(database_path)
+    matcher = options.matcher
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= AUTO_EXHAUSTIVE_MAX_IMAGES else "sequential"
     start = time.perf_counter()
-    pairs = pairs_to_match(database_path, matcher, overlap, loop_closure)
-    if exact:
-        match_exactly(database_path, pairs, max_ratio, progress)
+    pairs = pairs_to_match(database_path, matcher, options.overlap, options.loop_closure)
+    # Here, one task at a time on every core: pycolmap's matcher builds the FAISS index of
+    # each image again in every task, and holds it in memory while the task runs.
+    executor = executor or LocalExecutor(1, threads_per_task=os.cpu_count() or 1)
+    results: list[MatchedPair] = []
+    worker_seconds = np.zeros(2)
+    with pycolmap.Database.open(database_path) as db:
+        pairs = [pair for pair in pairs if not db.exists_matches(*pair)]  # as COLMAP does
+        tasks = pair_blocks(pairs, names, db, items_per_task(len(pairs), MAX_PAIRS_PER_TASK,
+                                                             executor.num_workers))
+        for matched, match_s, verify_s in executor.map(
+                match_block, block_arguments(tasks, db, options, executor), len(tasks),
+                desc="match and verify", progress=progress):
+            with pycolmap.DatabaseTransaction(db):
+                for pair in matched:
+                    db.write_matches(pair.id1, pair.id2, pair.matches)
+                    if pair.geometry is not None:
+                        db.write_two_view_geometry(pair.id1, pair.id2, pair.geometry)
+            results += [pair for pair in matched if pair.geometry is not None]
+            worker_seconds += (match_s, verify_s)
+        name_of = {image.image_id: image.name for image in db.read_all_images()}
+    results.sort(key=lambda pair: pycolmap.image_pair_to_pair_id(pair.id1, pair.id2))
+    elapsed = time.perf_counter() - start
+    # Matching and verification share the tasks: the wall time is split as the workers'.
+    share = worker_seconds[0] / worker_seconds.sum() if worker_seconds.sum() > 0 else 1.0
+    pair_results = [PairResult(name_of[p.id1], name_of[p.id2], len(p.matches),
+                               len(p.geometry.inlier_matches)) for p in results]
+    return MatchingSummary(matcher, pair_results, elapsed * share, elapsed * (1 - share))
+
+
+def pair_blocks(pairs: list[tuple[int, int]], names: list[str], db: pycolmap.Database,
+                pairs_per_task: int) -> list[list[tuple[int, int]]]:
+    """The pairs grouped by the blocks of PAIR_BLOCK_IMAGES images (in name order) their
+    two images fall in, then cut into tasks of at most `pairs_per_task`: a task needs
+    the features of at most two blocks."""
+    order = {name: index for index, name in enumerate(names)}
+    block_of = {image.image_id: order[image.name] // PAIR_BLOCK_IMAGES
+                for image in db.read_all_images()}
+    grouped: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for pair in pairs:
+        grouped.setdefault(tuple(sorted(block_of[i] for i in pair)), []).append(pair)
+    return [list(task) for key in sorted(grouped)
+            for task in chunks(grouped[key], pairs_per_task)]
+
+
+def block_arguments(tasks: list[list[tuple[int, int]]], db: pycolmap.Database,
+                    options: MatchingOptions, executor: Executor) -> Iterator[tuple]:
+    """match_block's arguments per task, made as the executor asks for them: each
+    image's features put once and let go after the last task that needs them."""
+    cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
+    images = {image.image_id: image for image in db.read_all_images()}
+    last_task = {image_id: index for index, task in enumerate(tasks)
+                 for pair in task for image_id in pair}
+    handles: dict[int, Any] = {}
+    for index, task in enumerate(tasks):
+        needed = sorted({image_id for pair in task for image_id in pair})
+        for image_id in needed:
+            if image_id not in handles:
+                handles[image_id] = executor.put((db.read_keypoints(image_id),
+                                                  db.read_descriptors(image_id).data))
+        yield (task, {i: cameras[images[i].camera_id] for i in needed},
+               {i: images[i].name for i in needed}, options, executor.threads_per_task,
+               *(handles[i] for i in needed))
+        for image_id in needed:
+            if last_task[image_id] == index:
+                del handles[image_id]
+
+
+@dataclass(frozen=True)
+class MatchedPair:
+    """One pair as the database stores it (id1 < id2): raw matches and verified geometry."""
+
+    id1: int
+    id2: int
+    matches: np.ndarray
+    geometry: pycolmap.TwoViewGeometry | None  # None: no matches, nothing to verify
+
+
+def match_block(pairs: list[tuple[int, int]], cameras: dict[int, pycolmap.Camera],
+                names: dict[int, str], options: MatchingOptions, num_threads: int,
+                *features: Features) -> tuple[list[MatchedPair], float, float]:
+    """The task: match the pairs (exact_matches, or pycolmap's matcher on a scratch
+    database of the pairs' images under their own ids), then verify each with
+    two_view_geometry, in `num_threads` threads. `features`: keypoints and descriptors
+    of the images of `cameras`, in image id order. Returns the pairs and the seconds
+    spent in each step."""
+    features_of = dict(zip(sorted(cameras), features))
+    start = time.perf_counter()
+    if options.exact:
+        found = {(id1, id2): exact_matches(features_of[id1][1], features_of[id2][1],
+                                           options.max_ratio)
+                 for id1, id2 in (sorted(pair) for pair in pairs)}
     else:
-        with pycolmap.Database.open(database_path) as db:
-            name_of = {image.image_id: image.name for image in db.read_all_images()}
-        with quiet_colmap_logs():
-            match_pairs(database_path, [(name_of[a], name_of[b]) for a, b in pairs],
-                        matching_options(max_ratio))
+        found = faiss_matches(pairs, features_of, cameras, names, options.max_ratio,
+                              num_threads)
     matched = time.perf_counter()
-    verified = verify_matches(database_path, max_error_px=max_error_px, seed=seed,
-                              progress=progress)
-    return MatchingSummary(matcher, verified, matched - start, time.perf_counter() - matched)
+
+    def verify(pair: tuple[int, int]) -> MatchedPair:
+        id1, id2 = pair
+        matches = found.get(pair)
+        if matches is None or not len(matches):  # an empty row, and no geometry
+            return MatchedPair(id1, id2, np.zeros((0, 2), np.uint32), None)
+        return MatchedPair(id1, id2, matches, two_view_geometry(
+            cameras[id1], cameras[id2], features_of[id1][0][:, :2].astype(np.float64),
+            features_of[id2][0][:, :2].astype(np.float64), matches, options.max_error_px,
+            pair_seed(options.seed, names[id1], names[id2])))
+
+    with ThreadPoolExecutor(num_threads) as pool:
+        results = list(pool.map(verify, sorted((min(pair), max(pair)) for pair in pairs)))
+    return results, matched - start, time.perf_counter() - matched
+
+
+def faiss_matches(pairs: list[tuple[int, int]], features: dict[int, Features],
+                  cameras: dict[int, pycolmap.Camera], names: dict[int, str],
+                  max_ratio: float, num_threads: int) -> dict[tuple[int, int], np.ndarray]:
+    """(id1, id2) with id1 < id2 -> the matches pycolmap's matcher stores for the pair."""
+    with tempfile.TemporaryDirectory(prefix="colmap-ext-match-") as scratch:
+        database_path = Path(scratch) / "database.db"
+        with pycolmap.Database.open(database_path) as db, pycolmap.DatabaseTransaction(db):
+            for camera in {camera.camera_id: camera for camera in cameras.values()}.values():
+                db.write_camera(camera, use_camera_id=True)
+            for image_id, (keypoints, descriptors) in features.items():
+                db.write_image(pycolmap.Image(name=names[image_id], image_id=image_id,
+                                              camera_id=cameras[image_id].camera_id),
+                               use_image_id=True)
+                db.write_keypoints(image_id, keypoints)
+                db.write_descriptors(image_id, pycolmap.FeatureDescriptors(
+                    pycolmap.FeatureExtractorType.SIFT, descriptors))
+        pairs_path = Path(scratch) / "pairs.txt"
+        pairs_path.write_text("".join(f"{names[a]} {names[b]}\n" for a, b in pairs))
+        with quiet_colmap_logs():
+            pycolmap.match_image_pairs(
+                database_path, matching_options=matching_options(max_ratio, num_threads),
+                pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_path),
+                device=pycolmap.Device.cpu)
+        with pycolmap.Database.open(database_path) as db:
+            pair_ids, all_matches = db.read_all_matches()
+    return {tuple(pycolmap.pair_id_to_image_pair(pair_id)): matches
+            for pair_id, matches in zip(pair_ids, all_matches)}
 
 
 def pairs_to_match(database_path: Path, matcher: str, overlap: int,
@@ -151,36 +317,6 @@ def pairs_to_match(database_path: Path, matcher: str, overlap: int,
     return unique
 
 
-def match_exactly(database_path: Path, pairs: list[tuple[int, int]], max_ratio: float,
-                  progress: bool) -> None:
-    """Write exact_matches for the pairs that have no matches yet."""
-    with pycolmap.Database.open(database_path) as db:
-        todo = [pair for pair in pairs if not db.exists_matches(*pair)]
-        descriptors = functools.lru_cache(EXACT_CACHED_IMAGES)(
-            lambda image_id: db.read_descriptors(image_id).data)
-        with pycolmap.DatabaseTransaction(db):
-            for pair in tqdm(todo, desc="match pairs (exact)", unit="pair",
-                             disable=not progress or not todo):
-                id1, id2 = sorted(pair)
-                db.write_matches(id1, id2, exact_matches(descriptors(id1), descriptors(id2),
-                                                         max_ratio))
-
-
-def check_options(matcher: str, overlap: int, max_ratio: float, max_error_px: float,
-                  seed: int | None) -> None:
-    """One-line errors for options pycolmap or the solvers would reject less clearly."""
-    if matcher not in MATCHERS:
-        raise UserError(f"unknown matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
-    if isinstance(overlap, bool) or not isinstance(overlap, int) or overlap < 1:
-        raise UserError(f"overlap must be a positive integer, got {overlap!r}")
-    if not 0 < max_ratio <= 1:
-        raise UserError(f"max_ratio must be in (0, 1], got {max_ratio!r}")
-    if not (np.isfinite(max_error_px) and max_error_px > 0):
-        raise UserError(f"max_error_px must be a positive number, got {max_error_px!r}")
-    if seed is not None and not 0 <= seed < 2**63:
-        raise UserError(f"seed must be a non-negative integer, got {seed!r}")
-
-
 def image_names(database_path: Path) -> list[str]:
     """Names of the database's images, sorted (the order of sequential matching)."""
     if not database_path.is_file():
@@ -195,12 +331,12 @@ def image_names(database_path: Path) -> list[str]:
         db.close()
 
 
-def matching_options(max_ratio: float) -> pycolmap.FeatureMatchingOptions:
-    """pycolmap's SIFT matching (FAISS), with ratio test and cross-check, leaving
-    verification to us."""
+def matching_options(max_ratio: float, num_threads: int) -> pycolmap.FeatureMatchingOptions:
+    """pycolmap's SIFT matching (FAISS) in `num_threads` threads, with ratio test and
+    cross-check, leaving verification to us."""
     options = pycolmap.FeatureMatchingOptions()
     options.skip_geometric_verification = True
-    options.num_threads = os.cpu_count() or 1
+    options.num_threads = num_threads
     options.sift.max_ratio = max_ratio
     options.sift.max_distance = SIFT_MAX_DISTANCE
     options.sift.cross_check = True
@@ -222,57 +358,6 @@ def loop_closure_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
     return [(names[i], names[i + step - n])
             for i in range(n) for step in range(1, overlap + 1)
             if i + step >= n and n - step > overlap]
-
-
-def match_pairs(database_path: Path, pairs: Iterable[tuple[str, str]],
-                options: pycolmap.FeatureMatchingOptions) -> None:
-    """Match the listed pairs of image names (pairs matched before are skipped by COLMAP)."""
-    pairs = list(pairs)
-    if not pairs:
-        return
-    with tempfile.TemporaryDirectory(prefix="colmap-ext-pairs-") as scratch:
-        pairs_path = Path(scratch) / "pairs.txt"
-        pairs_path.write_text("".join(f"{a} {b}\n" for a, b in pairs))
-        pycolmap.match_image_pairs(
-            database_path, matching_options=options,
-            pairing_options=pycolmap.ImportedPairingOptions(match_list_path=pairs_path),
-            device=pycolmap.Device.cpu)
-
-
-def verify_matches(database_path: str | os.PathLike, *, max_error_px: float = 4.0,
-                   seed: int | None = 0, progress: bool = True) -> list[PairResult]:
-    """Write a calibrated two-view geometry for every matched pair that has none yet."""
-    db = pycolmap.Database.open(database_path)
-    try:
-        cameras = {camera.camera_id: camera for camera in db.read_all_cameras()}
-        images = {image.image_id: image for image in db.read_all_images()}
-        pair_ids, all_matches = db.read_all_matches()
-        todo = [(pair_id, matches) for pair_id, matches in zip(pair_ids, all_matches)
-                if not db.exists_two_view_geometry(*pycolmap.pair_id_to_image_pair(pair_id))]
-        keypoints = {image_id: db.read_keypoints(image_id)[:, :2].astype(np.float64)
-                     for image_id in images}
-
-        def verify(item: tuple[int, np.ndarray]) -> pycolmap.TwoViewGeometry:
-            pair_id, matches = item
-            id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
-            return two_view_geometry(
-                cameras[images[id1].camera_id], cameras[images[id2].camera_id],
-                keypoints[id1], keypoints[id2], matches, max_error_px,
-                pair_seed(seed, images[id1].name, images[id2].name))
-
-        results = []
-        with ThreadPoolExecutor(os.cpu_count() or 1) as pool, pycolmap.DatabaseTransaction(db):
-            geometries = pool.map(verify, todo)
-            for (pair_id, matches), geometry in tqdm(zip(todo, geometries), total=len(todo),
-                                                     desc="verify pairs", unit="pair",
-                                                     disable=not progress):
-                id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
-                db.write_two_view_geometry(id1, id2, geometry)
-                results.append(PairResult(images[id1].name, images[id2].name, len(matches),
-                                          len(geometry.inlier_matches)))
-        return results
-    finally:
-        db.close()
 
 
 def pair_seed(seed: int | None, name1: str, name2: str) -> int | None:

@@ -10,10 +10,10 @@ second, not after feature extraction.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import secrets
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
@@ -22,6 +22,7 @@ from colmap_ext.errors import UserError
 from colmap_ext.features import (
     CAMERA_MODES,
     DEFAULT_MIN_NUM_KEYPOINTS,
+    FeatureOptions,
     check_camera,
     check_images,
     extract_features,
@@ -31,9 +32,10 @@ from colmap_ext.mapper import MapperOptions
 from colmap_ext.mapper import run as run_mapper
 from colmap_ext.mapper.flags import boolean, random_seed
 from colmap_ext.masks import METHODS, make_masks
-from colmap_ext.matching import MATCHERS, match_features
+from colmap_ext.matching import MATCHERS, MatchingOptions, match_features
 from colmap_ext.model_io import (MAPPER_OUTPUT, OUTPUT_TYPES, OutputLayout, holds_only,
                                  is_file, moved, replacing, write_json)
+from colmap_ext.timing import StageTimer
 
 DATABASE_NAME = "database.db"
 WORKSPACE = OutputLayout("a workspace", {
@@ -110,76 +112,67 @@ def main(image_path: str, workspace_path: str, camera_model: str | None = None,
                                  output_type)
     if rig_configs is not None:
         rigs.check_rig_images(rig_configs, names)
+    features = FeatureOptions(camera_model, params, camera_mode, mask_path, min_num_keypoints,
+                              domain_size_pooling)
+    matching = MatchingOptions(matcher=matcher, exact=exact_matching,
+                               seed=secrets.randbits(31) if seed is None else seed)
     with replacing(workspace_path, WORKSPACE, overwrite) as new_workspace, \
             distributed.optional_cluster(ray_address) as cluster:
         summary = run_stages(
             image_path, new_workspace, partial(moved, new=new_workspace, final=workspace),
-            camera_model, params, names, seed, start, camera_mode=camera_mode,
-            mask_path=mask_path, segment=segment, min_num_keypoints=min_num_keypoints,
-            domain_size_pooling=domain_size_pooling, matcher=matcher,
-            exact_matching=exact_matching, output_type=output_type, cluster=cluster,
-            rig_configs=rig_configs)
+            names, features, matching, start, segment=segment, output_type=output_type,
+            cluster=cluster, rig_configs=rig_configs)
     print(format_summary(summary, workspace))
     return summary
 
 
 def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str | Path], Path],
-               camera_model: str, params: list[float], names: list[str], seed: int | None,
-               start: float, *, camera_mode: str = "single", mask_path: str | None = None,
-               segment: str | None = None, min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS,
-               domain_size_pooling: bool = False, matcher: str = "auto",
-               exact_matching: bool = False, output_type: str = "BIN",
+               names: list[str], features: FeatureOptions, matching: MatchingOptions,
+               start: float, *, segment: str | None = None, output_type: str = "BIN",
                cluster: distributed.Cluster | None = None,
                rig_configs: list | None = None) -> dict:
     """The stages of `main` once the inputs are checked, written into `new_workspace`, a
     folder of model_io.replacing; `shown`: where a path will be once it is moved into place
     (model_io.moved), for the summary; `cluster`: where features and matching run (None:
     here); `rig_configs`: applied after extraction."""
-    seed = secrets.randbits(31) if seed is None else seed
     database_path = new_workspace / DATABASE_NAME
-    times: dict[str, float] = {}
+    timer = StageTimer()
     summary: dict = {"inputs": {
-        "image_path": str(shown(image_path)), "camera_model": camera_model,
-        "camera_params": params, "camera_mode": camera_mode,
-        "mask_path": mask_path, "segment": segment, "min_num_keypoints": min_num_keypoints,
-        "domain_size_pooling": domain_size_pooling, "matcher": matcher,
-        "exact_matching": exact_matching, "seed": seed, "num_images": len(names)}}
+        "image_path": str(shown(image_path)), "camera_model": features.camera_model,
+        "camera_params": features.camera_params, "camera_mode": features.camera_mode,
+        "mask_path": features.mask_path, "segment": segment,
+        "min_num_keypoints": features.min_num_keypoints,
+        "domain_size_pooling": features.domain_size_pooling, "matcher": matching.matcher,
+        "exact_matching": matching.exact, "seed": matching.seed, "num_images": len(names)}}
 
     if segment is not None:
-        mask_path = str(new_workspace / "masks")
-        with stage(times, "masks"):
-            coverage = make_masks(image_path, mask_path, segment, names)
-        summary["masks"] = {"path": str(shown(mask_path)), "coverage": coverage}
+        features = dataclasses.replace(features, mask_path=str(new_workspace / "masks"))
+        with timer("masks"):
+            coverage = make_masks(image_path, features.mask_path, segment, names)
+        summary["masks"] = {"path": str(shown(features.mask_path)), "coverage": coverage}
     if cluster is None:
-        with stage(times, "features"):
-            features = extract_features(database_path, image_path, camera_model=camera_model,
-                                        camera_params=params, camera_mode=camera_mode,
-                                        mask_path=mask_path, min_num_keypoints=min_num_keypoints,
-                                        image_names=names,
-                                        domain_size_pooling=domain_size_pooling)
+        with timer("features"):
+            feature_summary = extract_features(database_path, image_path, features,
+                                               image_names=names)
         if rig_configs is not None:
             rigs.apply_rig_config(database_path, rig_configs)
-        matching = match_features(database_path, matcher=matcher, seed=seed,
-                                  exact=exact_matching)
+        matching_summary = match_features(database_path, matching)
     else:
-        features, matching, summary["ray"] = distributed.extract_and_match(
-            cluster, database_path, image_path, times, camera_model=camera_model,
-            camera_params=params, camera_mode=camera_mode, mask_path=mask_path,
-            min_num_keypoints=min_num_keypoints, image_names=names, matcher=matcher, seed=seed,
-            exact_matching=exact_matching, domain_size_pooling=domain_size_pooling)
-    summary["features"] = features.to_dict()
-    times["matching"] = matching.matching_seconds
-    times["verification"] = matching.verification_seconds
-    summary["matching"] = matching.to_dict()
-    with stage(times, "mapper"):
+        feature_summary, matching_summary, summary["ray"] = distributed.extract_and_match(
+            cluster, database_path, image_path, names, features, matching, timer)
+    summary["features"] = feature_summary.to_dict()
+    timer.seconds["matching"] = matching_summary.matching_seconds
+    timer.seconds["verification"] = matching_summary.verification_seconds
+    summary["matching"] = matching_summary.to_dict()
+    with timer("mapper"):
         models = run_mapper(database_path, image_path, new_workspace / "sparse",
-                            MapperOptions(seed=seed), output_type=output_type.upper())
+                            MapperOptions(seed=matching.seed), output_type=output_type.upper())
     summary["models"] = [{"path": str(shown(new_workspace / "sparse" / str(index))),
                           "num_registered": model.num_reg_images(),
                           "num_points3D": model.num_points3D()}
                          for index, model in models.items()]
-    times["total"] = time.perf_counter() - start
-    summary["time_s"] = {name: round(seconds, 3) for name, seconds in times.items()}
+    timer.seconds["total"] = time.perf_counter() - start
+    summary["time_s"] = {name: round(seconds, 3) for name, seconds in timer.seconds.items()}
     write_json(summary, new_workspace / "reconstruct_summary.json")
     return summary
 
@@ -226,16 +219,6 @@ def check_inputs(image_path: str, workspace: Path, camera_model: str, camera_par
     if workspace.exists() and not workspace.is_dir():
         raise UserError(f"workspace path is a file, not a folder: {workspace}")
     return names, params
-
-
-@contextmanager
-def stage(times: dict[str, float], name: str) -> Iterator[None]:
-    """Record the wall time of one stage."""
-    start = time.perf_counter()
-    try:
-        yield
-    finally:
-        times[name] = time.perf_counter() - start
 
 
 def format_summary(summary: dict, workspace: Path) -> str:

@@ -1408,7 +1408,7 @@ def _(env):
 
 
 @case("reconstruct_sigterm_while_verifying", "interrupted by SIGTERM", code=143,
-      command="reconstruct", run=interrupted("verify pairs", signal.SIGTERM, delay=0.0))
+      command="reconstruct", run=interrupted("match and verify", signal.SIGTERM, delay=0.0))
 def _(env):
     return _reconstruct_over_a_workspace(env)
 

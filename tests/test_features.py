@@ -10,7 +10,8 @@ import pycolmap
 import pytest
 
 from colmap_ext.errors import UserError
-from colmap_ext.features import DEFAULT_PEAK_THRESHOLD, extract_features
+from colmap_ext.executors import LocalExecutor
+from colmap_ext.features import DEFAULT_PEAK_THRESHOLD, FeatureOptions, extract_features
 from colmap_ext.masks import make_masks
 
 WIDTH, HEIGHT = 320, 240
@@ -52,8 +53,9 @@ def read_features(database_path: Path) -> dict[str, tuple[np.ndarray, np.ndarray
 
 def test_poor_image_is_extracted_again_with_more_keypoints(images: Path, tmp_path: Path) -> None:
     database_path = tmp_path / "database.db"
-    summary = extract_features(database_path, images, camera_model="PINHOLE",
-                               camera_params=PARAMS, min_num_keypoints=500, progress=False)
+    summary = extract_features(database_path, images,
+                               FeatureOptions("PINHOLE", PARAMS, min_num_keypoints=500),
+                               progress=False)
     assert summary.reextracted == ["poor.png"]
     assert summary.initial_keypoints["poor.png"] < 500 <= summary.final_keypoints["poor.png"]
     assert summary.peak_thresholds["rich.png"] == DEFAULT_PEAK_THRESHOLD
@@ -75,8 +77,8 @@ def test_poor_image_is_extracted_again_with_more_keypoints(images: Path, tmp_pat
 
 def test_image_ids_follow_names_and_cameras_are_fixed(images: Path, tmp_path: Path) -> None:
     database_path = tmp_path / "database.db"
-    extract_features(database_path, images, camera_model="PINHOLE", camera_params=PARAMS,
-                     min_num_keypoints=0, progress=False)
+    extract_features(database_path, images,
+                     FeatureOptions("PINHOLE", PARAMS, min_num_keypoints=0), progress=False)
     db = pycolmap.Database.open(database_path)
     try:
         ids = {image.name: image.image_id for image in db.read_all_images()}
@@ -92,9 +94,9 @@ def test_one_camera_per_folder_allows_a_size_per_folder(tmp_path: Path) -> None:
         (tmp_path / "images" / folder).mkdir(parents=True)
         cv2.imwrite(str(tmp_path / "images" / folder / "view.png"), noise_texture(shape, 0, 1.0))
     database_path = tmp_path / "database.db"
-    extract_features(database_path, tmp_path / "images", camera_model="SIMPLE_PINHOLE",
-                     camera_params="300,80,60", camera_mode="per_folder", min_num_keypoints=0,
-                     progress=False)
+    extract_features(database_path, tmp_path / "images",
+                     FeatureOptions("SIMPLE_PINHOLE", "300,80,60", camera_mode="per_folder",
+                                    min_num_keypoints=0), progress=False)
     db = pycolmap.Database.open(database_path)
     try:
         cameras = {image.name: db.read_camera(image.camera_id) for image in db.read_all_images()}
@@ -113,8 +115,9 @@ def test_masked_pixels_give_no_keypoints(images: Path, tmp_path: Path) -> None:
     for name in ("rich.png", "poor.png"):
         cv2.imwrite(str(masks / f"{name}.png"), mask)
     database_path = tmp_path / "database.db"
-    extract_features(database_path, images, camera_model="PINHOLE", camera_params=PARAMS,
-                     mask_path=masks, min_num_keypoints=500, progress=False)
+    extract_features(database_path, images,
+                     FeatureOptions("PINHOLE", PARAMS, mask_path=masks, min_num_keypoints=500),
+                     progress=False)
     for keypoints, _ in read_features(database_path).values():
         assert len(keypoints) > 0 and keypoints[:, 0].max() < WIDTH // 2 + 1
 
@@ -132,8 +135,7 @@ def test_bad_camera_is_refused_before_any_work(images: Path, tmp_path: Path, mod
                                                params: str, message: str) -> None:
     database_path = tmp_path / "database.db"
     with pytest.raises(UserError) as error:
-        extract_features(database_path, images, camera_model=model, camera_params=params,
-                         progress=False)
+        extract_features(database_path, images, FeatureOptions(model, params), progress=False)
     assert message in str(error.value)
     assert not database_path.exists()
 
@@ -141,52 +143,53 @@ def test_bad_camera_is_refused_before_any_work(images: Path, tmp_path: Path, mod
 def test_zero_byte_image_is_named(images: Path, tmp_path: Path) -> None:
     (images / "empty.jpg").write_bytes(b"")
     with pytest.raises(UserError, match=r"image file is empty \(0 bytes\): .*empty\.jpg"):
-        extract_features(tmp_path / "database.db", images, camera_model="PINHOLE",
-                         camera_params=PARAMS, progress=False)
+        extract_features(tmp_path / "database.db", images, FeatureOptions("PINHOLE", PARAMS),
+                         progress=False)
     assert not (tmp_path / "database.db").exists()
 
 
 def test_corrupt_and_truncated_images_are_named(images: Path, tmp_path: Path) -> None:
     (images / "garbage.png").write_bytes(b"\x89PNG\r\n\x1a\n not really a png")
     with pytest.raises(UserError, match=r"cannot read image .*garbage\.png"):
-        extract_features(tmp_path / "database.db", images, camera_model="PINHOLE",
-                         camera_params=PARAMS, progress=False)
+        extract_features(tmp_path / "database.db", images, FeatureOptions("PINHOLE", PARAMS),
+                         progress=False)
     (images / "garbage.png").unlink()
     data = (images / "rich.png").read_bytes()
     (images / "rich.png").write_bytes(data[: len(data) // 2])
     with pytest.raises(UserError, match=r"cannot read image .*rich\.png"):
-        extract_features(tmp_path / "database.db", images, camera_model="PINHOLE",
-                         camera_params=PARAMS, progress=False)
+        extract_features(tmp_path / "database.db", images, FeatureOptions("PINHOLE", PARAMS),
+                         progress=False)
 
 
 def test_missing_or_empty_image_folder(tmp_path: Path) -> None:
     with pytest.raises(UserError, match="image folder not found: .*nowhere"):
-        extract_features(tmp_path / "database.db", tmp_path / "nowhere", camera_model="PINHOLE",
-                         camera_params=PARAMS, progress=False)
+        extract_features(tmp_path / "database.db", tmp_path / "nowhere",
+                         FeatureOptions("PINHOLE", PARAMS), progress=False)
     (tmp_path / "empty").mkdir()
     with pytest.raises(UserError, match="no images in"):
-        extract_features(tmp_path / "database.db", tmp_path / "empty", camera_model="PINHOLE",
-                         camera_params=PARAMS, progress=False)
+        extract_features(tmp_path / "database.db", tmp_path / "empty",
+                         FeatureOptions("PINHOLE", PARAMS), progress=False)
 
 
 def test_sizes_and_masks_are_checked(images: Path, tmp_path: Path) -> None:
     cv2.imwrite(str(images / "small.png"), noise_texture((120, 160), 2, 1.0))
     with pytest.raises(UserError, match="images sharing one camera must have one size"):
-        extract_features(tmp_path / "database.db", images, camera_model="PINHOLE",
-                         camera_params=PARAMS, progress=False)
+        extract_features(tmp_path / "database.db", images, FeatureOptions("PINHOLE", PARAMS),
+                         progress=False)
     (images / "small.png").unlink()
     (tmp_path / "masks").mkdir()
     with pytest.raises(UserError, match=r"file not found: .*masks/poor\.png\.png"):
-        extract_features(tmp_path / "database.db", images, camera_model="PINHOLE",
-                         camera_params=PARAMS, mask_path=tmp_path / "masks", progress=False)
+        extract_features(tmp_path / "database.db", images,
+                         FeatureOptions("PINHOLE", PARAMS, mask_path=tmp_path / "masks"),
+                         progress=False)
 
 
 def test_database_with_images_is_not_reused(images: Path, tmp_path: Path) -> None:
     database_path = tmp_path / "database.db"
-    extract_features(database_path, images, camera_model="PINHOLE", camera_params=PARAMS,
-                     min_num_keypoints=0, progress=False)
+    extract_features(database_path, images,
+                     FeatureOptions("PINHOLE", PARAMS, min_num_keypoints=0), progress=False)
     with pytest.raises(UserError, match="already holds 2 images"):
-        extract_features(database_path, images, camera_model="PINHOLE", camera_params=PARAMS,
+        extract_features(database_path, images, FeatureOptions("PINHOLE", PARAMS),
                          progress=False)
 
 
@@ -225,3 +228,20 @@ def test_masks_cover_the_object_not_the_background(tmp_path: Path, method: str,
 def test_unknown_mask_method(tmp_path: Path) -> None:
     with pytest.raises(UserError, match="unknown segmentation method 'otsu'"):
         make_masks(tmp_path, tmp_path / "masks", "otsu")
+
+
+@pytest.mark.parametrize("executor", [LocalExecutor(1), LocalExecutor(2, processes=True)],
+                         ids=["one thread", "two processes"])
+def test_every_executor_writes_the_same_features(images: Path, tmp_path: Path,
+                                                 executor: LocalExecutor) -> None:
+    """Chunks of images run in one thread or in worker processes: the same rows as in
+    this process's threads (the default), the adaptive rule included."""
+    options = FeatureOptions("PINHOLE", PARAMS, min_num_keypoints=500)
+    expected = extract_features(tmp_path / "threads.db", images, options, progress=False)
+    got = extract_features(tmp_path / "other.db", images, options, executor=executor,
+                           progress=False)
+    assert got.peak_thresholds == expected.peak_thresholds and got.reextracted == ["poor.png"]
+    reference = read_features(tmp_path / "threads.db")
+    for name, (keypoints, descriptors) in read_features(tmp_path / "other.db").items():
+        np.testing.assert_array_equal(keypoints, reference[name][0])
+        np.testing.assert_array_equal(descriptors, reference[name][1])

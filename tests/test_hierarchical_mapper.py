@@ -19,9 +19,9 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_ext import distributed
 from colmap_ext.database import read_database
 from colmap_ext.errors import UserError
+from colmap_ext.executors import LocalExecutor
 from colmap_ext.evaluate import align_similarity, evaluate
 from colmap_ext.ground_truth import GroundTruth
 from colmap_ext.hierarchical_mapper import (MAPPER_DEFAULTS, ClusterModel, HierarchicalOptions,
@@ -199,11 +199,11 @@ def test_a_requested_initial_pair_starts_only_the_clusters_that_hold_it(survey, 
     class Mapped(Exception):
         pass
 
-    def record(cluster, task, arguments, *args, **kwargs):
+    def record(executor, task, arguments, *args, **kwargs):
         tasks.extend(arguments)
         raise Mapped
 
-    monkeypatch.setattr(distributed, "run_local_or_on_cluster", record)
+    monkeypatch.setattr(LocalExecutor, "map", record)
     options = HierarchicalOptions(LEAF_MAX_NUM_IMAGES, IMAGE_OVERLAP)
     requested = options_from_flags({"Mapper.init_image_id1": 1, "Mapper.init_image_id2": 2},
                                    base=MAPPER_DEFAULTS)

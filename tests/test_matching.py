@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import shutil
+import sqlite3
 from pathlib import Path
 
 import cv2
@@ -13,8 +15,9 @@ import pytest
 
 from colmap_ext import matching
 from colmap_ext.errors import UserError
-from colmap_ext.features import extract_features, quiet_colmap_logs
-from colmap_ext.matching import loop_closure_pairs, match_features
+from colmap_ext.executors import LocalExecutor
+from colmap_ext.features import FeatureOptions, extract_features, quiet_colmap_logs
+from colmap_ext.matching import MatchingOptions, loop_closure_pairs, match_features
 
 WIDTH, HEIGHT, FOCAL = 480, 360, 500.0
 K = np.array([[FOCAL, 0, WIDTH / 2], [0, FOCAL, HEIGHT / 2], [0, 0, 1]])
@@ -90,8 +93,8 @@ def scene_database(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, list
     for k, pose in enumerate(poses):
         cv2.imwrite(str(root / "images" / f"view{k}.png"), render(floor, box, pose))
     cv2.imwrite(str(root / "images" / "zother.png"), render(texture(2), texture(3), poses[0]))
-    extract_features(root / "database.db", root / "images", camera_model="PINHOLE",
-                     camera_params=PARAMS, min_num_keypoints=0, progress=False)
+    extract_features(root / "database.db", root / "images",
+                     FeatureOptions("PINHOLE", PARAMS, min_num_keypoints=0), progress=False)
     return root / "database.db", poses
 
 
@@ -103,7 +106,7 @@ def test_verified_geometry_matches_the_true_relative_pose(scene_database, tmp_pa
     source, poses = scene_database
     database_path = tmp_path / "database.db"
     shutil.copy(source, database_path)
-    summary = match_features(database_path, matcher="exhaustive", progress=False)
+    summary = match_features(database_path, MatchingOptions(matcher="exhaustive"), progress=False)
     by_pair = {(p.name1, p.name2): p for p in summary.pairs}
     for (name1, name2), pair in by_pair.items():
         if "zother" in name1 + name2:
@@ -146,9 +149,32 @@ def test_same_seed_same_result(scene_database, tmp_path: Path) -> None:
     for run in range(2):
         database_path = tmp_path / f"run{run}.db"
         shutil.copy(source, database_path)
-        results.append(match_features(database_path, matcher="exhaustive", seed=7, exact=True,
-                                      progress=False).pairs)
+        options = MatchingOptions(matcher="exhaustive", seed=7, exact=True)
+        results.append(match_features(database_path, options, progress=False).pairs)
     assert results[0] == results[1]
+
+
+def database_rows(database_path: Path) -> dict[str, list[tuple]]:
+    """The matches and two-view geometries tables, row for row."""
+    with contextlib.closing(sqlite3.connect(database_path)) as connection:
+        return {table: connection.execute(f"SELECT * FROM {table} ORDER BY 1").fetchall()
+                for table in ("matches", "two_view_geometries")}
+
+
+def test_blocks_and_executors_do_not_change_the_database(scene_database, tmp_path: Path,
+                                                        monkeypatch) -> None:
+    """The pairs cut into blocks of 2 images, run in one thread: the same rows as one
+    block in this process's threads (the default)."""
+    source, _ = scene_database
+    options = MatchingOptions(matcher="exhaustive", exact=True)
+    shutil.copy(source, tmp_path / "threads.db")
+    expected = match_features(tmp_path / "threads.db", options, progress=False)
+    monkeypatch.setattr(matching, "PAIR_BLOCK_IMAGES", 2)
+    shutil.copy(source, tmp_path / "blocks.db")
+    got = match_features(tmp_path / "blocks.db", options, executor=LocalExecutor(1),
+                         progress=False)
+    assert got.pairs == expected.pairs and got.num_verified == 6
+    assert database_rows(tmp_path / "blocks.db") == database_rows(tmp_path / "threads.db")
 
 
 def colmap_brute_force_matches(source: Path, database_path: Path) -> dict[int, np.ndarray]:
@@ -174,7 +200,8 @@ def test_exact_matching_is_colmaps_brute_force(scene_database, tmp_path: Path, m
     monkeypatch.setattr(matching, "EXACT_BLOCK_PRODUCTS", block_products)
     database_path = tmp_path / "database.db"
     shutil.copy(source, database_path)
-    match_features(database_path, matcher="exhaustive", exact=True, progress=False)
+    match_features(database_path, MatchingOptions(matcher="exhaustive", exact=True),
+                   progress=False)
     with pycolmap.Database.open(database_path) as db:
         got = dict(zip(*db.read_all_matches()))
         assert min(db.num_keypoints_for_image(i.image_id) for i in db.read_all_images()) > 3000
@@ -187,7 +214,8 @@ def test_sequential_matching_closes_the_loop(scene_database, tmp_path: Path) -> 
     source, _ = scene_database
     database_path = tmp_path / "database.db"
     shutil.copy(source, database_path)
-    summary = match_features(database_path, matcher="sequential", overlap=1, progress=False)
+    summary = match_features(database_path, MatchingOptions(matcher="sequential", overlap=1),
+                             progress=False)
     assert summary.matcher == "sequential"
     names = ["view0.png", "view1.png", "view2.png", "view3.png", "zother.png"]
     db = pycolmap.Database.open(database_path)
@@ -241,7 +269,7 @@ def long_sequence(tmp_path_factory):
     """101 images matched by the "auto" matcher with overlap 3: (names, summary, tried pairs)."""
     database_path = tmp_path_factory.mktemp("long_sequence") / "database.db"
     names = random_feature_database(database_path, 101)
-    summary = match_features(database_path, overlap=3, progress=False)
+    summary = match_features(database_path, MatchingOptions(overlap=3), progress=False)
     return names, summary, matched_pairs(database_path, names)
 
 
@@ -276,9 +304,9 @@ def test_sequential_matching_pairs_each_image_with_the_next_overlap(long_sequenc
 def test_bad_options_and_databases(scene_database, tmp_path: Path) -> None:
     source, _ = scene_database
     with pytest.raises(UserError, match="unknown matcher 'vocab'"):
-        match_features(source, matcher="vocab")
+        match_features(source, MatchingOptions(matcher="vocab"))
     with pytest.raises(UserError, match="max_ratio must be in"):
-        match_features(source, max_ratio=1.5)
+        match_features(source, MatchingOptions(max_ratio=1.5))
     with pytest.raises(UserError, match="database not found"):
         match_features(tmp_path / "missing.db")
     pycolmap.Database.open(tmp_path / "empty.db").close()
@@ -293,11 +321,10 @@ def test_temple_pairs_verify_and_colmap_maps_our_database(tmp_path: Path,
     names = [f"templeSR{k:04d}.png" for k in (6, 7, 8, 9)]
     image_path = real_data / "templeSparseRing"
     ours, theirs = tmp_path / "ours.db", tmp_path / "colmap.db"
-    extract_features(ours, image_path, camera_model="PINHOLE",
-                     camera_params="1520.4,1525.9,302.32,246.87", image_names=names,
-                     progress=False)
+    extract_features(ours, image_path, FeatureOptions("PINHOLE", "1520.4,1525.9,302.32,246.87"),
+                     image_names=names, progress=False)
     shutil.copy(ours, theirs)
-    summary = match_features(ours, matcher="exhaustive", progress=False)
+    summary = match_features(ours, MatchingOptions(matcher="exhaustive"), progress=False)
     with quiet_colmap_logs():
         pycolmap.match_exhaustive(theirs, device=pycolmap.Device.cpu)
     db = pycolmap.Database.open(theirs)

@@ -29,6 +29,7 @@ import pytest
 pytest.importorskip("ray", reason="ray is not installed (pip install 'colmap-ext[ray]'): "
                                   "the Ray tests are skipped")
 
+from colmap_ext.features import FeatureOptions, extract_features  # noqa: E402
 from colmap_ext.reconstruct import main as reconstruct  # noqa: E402
 from colmap_ext.synthetic.render import render_images  # noqa: E402
 from colmap_ext.synthetic.scene import ring_scene  # noqa: E402
@@ -242,10 +243,9 @@ def test_images_sent_as_bytes_give_the_same_features(ray_cluster, single_machine
 
     address, _ = ray_cluster
     images, reference, _ = single_machine
-    with distributed.connect(address) as cluster:
-        distributed.extract_features(cluster, tmp_path / "database.db", images,
-                                     camera_model="OPENCV", camera_params=PARAMS, by_path=False,
-                                     progress=False)
+    with distributed.connect(address, images_by_path=False) as cluster:
+        extract_features(tmp_path / "database.db", images, FeatureOptions("OPENCV", PARAMS),
+                         executor=cluster, progress=False)
     got, expected = tables(tmp_path / "database.db"), tables(reference / "database.db")
     for name in ("cameras", "images", "keypoints", "descriptors"):
         assert got[name] == expected[name], name

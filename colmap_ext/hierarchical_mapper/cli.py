@@ -13,8 +13,9 @@ from colmap_ext.errors import UserError
 from colmap_ext.hierarchical_mapper.options import MAPPER_DEFAULTS, HierarchicalOptions
 from colmap_ext.hierarchical_mapper.pipeline import hierarchical_mapping
 from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from_flags
-from colmap_ext.mapper.pipeline import StageTimer, check_images, write_result
+from colmap_ext.mapper.pipeline import check_images, write_result
 from colmap_ext.model_io import MAPPER_OUTPUT, OUTPUT_TYPES, replacing
+from colmap_ext.timing import StageTimer
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
-from typing import Any
 
 import pycolmap
 
 from colmap_ext.database import DatabaseContents
 from colmap_ext.errors import UserError
+from colmap_ext.executors import Executor, LocalExecutor
 from colmap_ext.hierarchical_mapper.clusters import ClusterModel, database_subset, map_cluster
 from colmap_ext.hierarchical_mapper.joining import join, spanning_trees
 from colmap_ext.hierarchical_mapper.options import HierarchicalOptions
@@ -19,7 +19,7 @@ from colmap_ext.mapper.bundle_adjustment import adjust_reconstruction
 from colmap_ext.mapper.cli import options_from_flags
 from colmap_ext.mapper.initial_pair import check_requested_pair
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.pipeline import StageTimer
+from colmap_ext.timing import StageTimer
 
 
 @dataclass(frozen=True)
@@ -33,15 +33,13 @@ class ClusterReport:
 
 
 def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
-                         options: HierarchicalOptions, cluster: Any = None,
+                         options: HierarchicalOptions, cluster: Executor | None = None,
                          timer: StageTimer | None = None, progress: bool = True
                          ) -> tuple[list[pycolmap.Reconstruction], list[ClusterReport]]:
     """Partition, map every cluster (Ray tasks on `cluster`, a distributed.Cluster, else
-    a local pool), join and adjust. Returns the models, largest first (nothing
+    a pool of local processes), join and adjust. Returns the models, largest first (nothing
     written), and a report per cluster. The command maps with MAPPER_DEFAULTS under its
     flags."""
-    from colmap_ext.distributed import run_local_or_on_cluster
-
     timer = timer or StageTimer()
     check_requested_pair(db.images, mapper_options)
     with timer("partition"):
@@ -59,9 +57,9 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     models: list[ClusterModel] = []
     reports: list[ClusterReport] = []
     with timer("cluster mapping"):
-        results = run_local_or_on_cluster(cluster, map_cluster, arguments, workers,
-                                          desc=f"map {len(clusters)} clusters",
-                                          progress=progress)
+        executor = cluster or LocalExecutor(workers, processes=True)
+        results = executor.map(map_cluster, arguments, len(arguments),
+                               desc=f"map {len(clusters)} clusters", progress=progress)
         for index, cluster_models, seconds in sorted(results, key=lambda r: r[0]):
             models += cluster_models
             reports.append(ClusterReport(

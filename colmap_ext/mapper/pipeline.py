@@ -9,7 +9,6 @@ import dataclasses
 import itertools
 import time
 from collections import defaultdict
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -30,28 +29,13 @@ from colmap_ext.mapper.registration import (Outcome, descriptor_correspondences,
 from colmap_ext.mapper.triangulation import triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
+from colmap_ext.timing import StageTimer
 
 
 # Images tried per round before the mapper gives up on growing the model.
 MAX_CANDIDATES_PER_ROUND = 10
 # Memory for the descriptor searches kept between guided matchings of the same pair.
 NEAREST_DESCRIPTORS_BYTES = 64 * 2**20
-
-
-class StageTimer:
-    """Wall time per pipeline stage, summed over calls, and counts of what the stages did."""
-
-    def __init__(self) -> None:
-        self.seconds: dict[str, float] = defaultdict(float)
-        self.counts: dict[str, int] = defaultdict(int)
-
-    @contextmanager
-    def __call__(self, stage: str):
-        start = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.seconds[stage] += time.perf_counter() - start
 
 
 class IncrementalMapper:
