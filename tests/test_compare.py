@@ -92,6 +92,8 @@ def test_writes_every_file(compared):
     ours_row = next(line for line in markdown.splitlines() if line.startswith("| ours "))
     assert "time / COLMAP incremental" in markdown and f" {ratio:.2f}x " in ours_row
     assert "compare_reconstructions" in markdown
+    auc = report["mappers"]["ours"]["AUC_percent"]
+    assert "AUC@0.5/1/5/10 deg [%]" in markdown and " / ".join(f"{v:.2f}" for v in auc.values()) in ours_row
 
 
 def test_report_has_the_keys(compared, synthetic):
