@@ -286,7 +286,7 @@ def format_table(report: dict) -> str:
     for key, unit in MEASURES.items():
         maximum, median = report[summary_key(key, "max")], report[summary_key(key, "median")]
         lines.append(f"{key.removesuffix('_deg') + ':':<15}max {maximum:.4f}  median {median:.4f}  ({unit})")
-    lines.append(f"{'AUC@' + '/'.join(report[AUC_KEY]) + ' deg:':<15}{format_auc(report)}  "
+    lines.append(f"AUC@{'/'.join(report[AUC_KEY])} deg: {format_auc(report)}  "
                  "(%, relative poses of image pairs)")
     return "\n".join(lines)
 
