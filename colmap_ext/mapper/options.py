@@ -150,8 +150,11 @@ class FilteringOptions:
     """Dropping observations, points and images the model no longer supports
     (paper, step 4e; filtering.py)."""
 
-    # An observation is kept while it reprojects within this error (px).
+    # An observation is kept while it reprojects within this error (px) ...
     max_reproj_error_px: float = 3.0
+    # ... or within this many times the median error, where the keypoint noise reaches
+    # max_reproj_error_px: 3 x the median is 3.5 standard deviations of Gaussian noise.
+    noise_max_error_ratio: float = 3.0
     # A point is kept while its widest pair of rays spans this angle (deg).
     min_tri_angle_deg: float = 1.5
     # Images a point must be seen in ...
@@ -173,6 +176,7 @@ class FilteringOptions:
         _require(self.track_grace_registrations >= 0, self, "track_grace_registrations", ">= 0")
         _require(self.max_rotation_uncertainty > 0, self, "max_rotation_uncertainty", "> 0")
         _require(self.final_max_error_ratio >= 0, self, "final_max_error_ratio", ">= 0")
+        _require(self.noise_max_error_ratio >= 0, self, "noise_max_error_ratio", ">= 0")
 
 
 @dataclass
@@ -193,6 +197,10 @@ class BundleAdjustmentOptions:
     # The robust loss, one of BA_LOSSES, and its scale (px).
     loss: str = "cauchy"
     loss_scale_px: float = 1.0
+    # The loss of a finished model's last adjustment, after its last filter. With the
+    # outliers filtered out, least squares ("trivial") gives the maximum-likelihood poses
+    # on the observations kept, which the robust loss would down-weight.
+    final_loss: str = "trivial"
     # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
     function_tolerance: float = 1e-5
     # Smaller problems (residuals) are solved on one thread, larger on MapperOptions.threads().
@@ -214,6 +222,7 @@ class BundleAdjustmentOptions:
         _require(self.global_images_ratio > 1, self, "global_images_ratio", "> 1")
         _require(self.global_max_iterations >= 1, self, "global_max_iterations", ">= 1")
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
+        _require(self.final_loss in BA_LOSSES, self, "final_loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
         _require(self.min_num_residuals_for_multi_threading >= 0, self,
