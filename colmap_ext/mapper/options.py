@@ -194,9 +194,14 @@ class BundleAdjustmentOptions:
     global_images_ratio: float = 1.1
     # Ceres iterations of a global adjustment.
     global_max_iterations: int = 50
-    # The robust loss, one of BA_LOSSES, and its scale (px).
+    # The robust loss, one of BA_LOSSES, and its scale (px) ...
     loss: str = "cauchy"
     loss_scale_px: float = 1.0
+    # ... raised to this many times the model's median reprojection error (measured at
+    # each global adjustment) where the keypoint noise reaches it: a scale below the
+    # noise down-weights good observations and slows Ceres down; 1.7 x the median is
+    # twice the standard deviation of Gaussian noise.
+    noise_loss_scale_ratio: float = 1.7
     # The loss of a finished model's last adjustment, after its last filter. With the
     # outliers filtered out, least squares ("trivial") gives the maximum-likelihood poses
     # on the observations kept, which the robust loss would down-weight.
@@ -224,6 +229,7 @@ class BundleAdjustmentOptions:
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.final_loss in BA_LOSSES, self, "final_loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
+        _require(self.noise_loss_scale_ratio >= 0, self, "noise_loss_scale_ratio", ">= 0")
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
         _require(self.min_num_residuals_for_multi_threading >= 0, self,
                  "min_num_residuals_for_multi_threading", ">= 0")

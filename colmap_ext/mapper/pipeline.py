@@ -77,6 +77,9 @@ class IncrementalMapper:
             sorted(model.image_ids, key=lambda i: model.db.images[i].name))}
         self.trials: dict[int, int] = defaultdict(int)
         self.num_images_at_global_ba = 0
+        # The robust loss's scale, raised where the measured noise reaches it (see
+        # BundleAdjustmentOptions.noise_loss_scale_ratio); set at each global adjustment.
+        self.loss_scale_px = options.bundle_adjustment.loss_scale_px
         # Per unregistered image: model points it sees through verified matches, kept
         # between rounds and counted again only when a neighbour's observations change.
         self._visible: dict[int, int] = {}
@@ -300,6 +303,8 @@ class IncrementalMapper:
             with self.timer("filtering"):
                 removed, _ = filter_points(model, registered, options, final=final,
                                            max_error_ratio=ratio)
+                self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio *
+                                         median_reprojection_error(model, registered))
         if final and (ratio > 0 and removed or ba.final_loss != ba.loss):
             self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True,
                                 loss=ba.final_loss)
@@ -309,7 +314,7 @@ class IncrementalMapper:
                        refine_intrinsics: bool = False, loss: str | None = None) -> None:
         with self.timer("bundle adjustment"):
             iterations = bundle_adjust(self.model, image_ids, self.options, max_iterations,
-                                       refine_intrinsics, loss)
+                                       refine_intrinsics, loss, self.loss_scale_px)
         self.timer.counts["bundle adjustment solves"] += 1
         self.timer.counts["bundle adjustment iterations"] += iterations
 
