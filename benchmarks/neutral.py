@@ -4,7 +4,10 @@ generator of COLMAP's mapper tests), where nothing in the data is chosen by us.
 
 Cases: every combination of --camera_models, --sizes (images of one camera), --noise
 (keypoint standard deviation in pixels) and --inlier_ratios (`inlier_match_ratio`: the
-share of each pair's matches that are true), each generated once per seed of --seeds
+share of each pair's matches that are true; the generator puts its wrong matches among
+the raw matches alone, its two-view geometries hold the true ones: what COLMAP's mappers
+read is the same at every ratio, ours also reads the raw matches where registration
+falls short), each generated once per seed of --seeds
 (`pycolmap.set_random_seed` before generating and before adding noise); --num_points scene
 points, every one seen by every image, as the generator makes them.
 
@@ -206,8 +209,10 @@ def section(rows: list[list[str]], command: str, elapsed_s: float, num_points: i
         f"- inputs: `pycolmap.synthesize_dataset` (one camera, {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, "
         f"PINHOLE {CAMERA_PARAMS['PINHOLE']} or SIMPLE_RADIAL {CAMERA_PARAMS['SIMPLE_RADIAL']}, "
         f"{num_points} points seen by every image, exhaustive matches of which the inlier ratio "
-        "are true) and `synthesize_noise` (keypoint noise), `pycolmap.set_random_seed(seed)` "
-        "before each; intrinsics fixed in every mapper, mapper seed 0.",
+        "are true; the wrong ones are among the raw matches alone, the verified two-view "
+        "geometries hold the true ones) and `synthesize_noise` (keypoint noise), "
+        "`pycolmap.set_random_seed(seed)` before each; intrinsics fixed in every mapper, "
+        "mapper seed 0.",
         "- each mapper a whole process on its own copy of the database (as "
         "`benchmarks/mapper_speed.py`); cells: median over the seeds (worst seed). R_err: "
         "after a similarity alignment on the camera centres; AUC@1deg: relative poses of "
