@@ -1,11 +1,9 @@
 """The mapper on databases from COLMAP's own generator (`pycolmap.synthesize_dataset` with
 `synthesize_noise`), the neutral ground of benchmarks/neutral.py: poses against the
-truth, tracks against the true tracks, and the maximum-likelihood answer COLMAP's
-incremental mapper also reaches when every match is an inlier."""
+truth, tracks against the true tracks, and the last adjustment's least-squares optimum."""
 
 from __future__ import annotations
 
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -13,7 +11,6 @@ import pycolmap
 import pytest
 
 from colmap_ext.angles import rotation_angles_deg
-from colmap_ext.colmap_mappers import colmap_incremental_options, fix_intrinsics_in_database
 from colmap_ext.database import read_database
 from colmap_ext.evaluate import aligned_to_ground_truth
 from colmap_ext.ground_truth import GroundTruth
@@ -93,22 +90,28 @@ def test_poses_and_tracks_of_generated_databases(tmp_path, camera_model, noise_p
     assert model.compute_num_observations() > min_observations * truth.compute_num_observations()
 
 
-def test_every_match_an_inlier_gives_colmaps_maximum_likelihood_poses(tmp_path):
-    """With every match an inlier both mappers hold the same observations (all 3600 of
-    the truth on this seed), so they must reach the same least-squares optimum: ours and
-    COLMAP incremental's rotations agree far more closely than either agrees with the
-    truth. Measured: 0.0001 deg apart, errors up to 0.024 deg; with the robust loss in the
-    last adjustment (before BundleAdjustmentOptions.final_loss) 0.0059 deg apart."""
-    truth = generate(tmp_path, "PINHOLE", 0.5, 1.0, seed=0)
-    colmap_folder = tmp_path / "colmap"
-    colmap_folder.mkdir()
-    shutil.copyfile(tmp_path / "database.db", colmap_folder / "database.db")
-    camera_ids, _ = fix_intrinsics_in_database(colmap_folder / "database.db")
-    colmap_models = pycolmap.incremental_mapping(colmap_folder / "database.db", tmp_path,
-                                                 colmap_folder, colmap_incremental_options(camera_ids, 0))
-    colmap_model = max(colmap_models.values(), key=lambda m: m.num_reg_images())
+def test_the_last_adjustment_is_the_least_squares_optimum_of_the_kept_observations(tmp_path):
+    """The model ends on a least-squares adjustment of the observations its last filter
+    kept (BundleAdjustmentOptions.final_loss), the maximum-likelihood poses under Gaussian
+    keypoint noise: a further least-squares adjustment of its poses and points moves no
+    rotation by more than a few ten-thousandths of a degree. Measured: 0.0005 deg; 0.0077
+    when the last adjustment kept the robust loss, which down-weights good observations
+    (R_err max 0.024 deg)."""
+    generate(tmp_path, "PINHOLE", 0.5, 1.0, seed=0)
     model = ours(tmp_path)
-    assert model.num_reg_images() == colmap_model.num_reg_images() == truth.num_images()
-    assert model.compute_num_observations() == colmap_model.compute_num_observations()
-    difference = angles_between(aligned_rotations(model, truth), aligned_rotations(colmap_model, truth))
-    assert difference.max() < 0.05 * rotation_errors(colmap_model, truth).max()
+    image_ids = sorted(model.reg_image_ids())
+    before = np.array([model.images[i].cam_from_world().rotation.matrix() for i in image_ids])
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in image_ids:
+        config.add_image(image_id)
+    for camera_id in model.cameras:
+        config.set_constant_cam_intrinsics(camera_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    options = pycolmap.BundleAdjustmentOptions(refine_focal_length=False,
+                                               refine_principal_point=False,
+                                               refine_extra_params=False, print_summary=False)
+    options.ceres.solver_options.max_num_iterations = 100
+    assert options.ceres.loss_function_type == pycolmap.LossFunctionType.TRIVIAL
+    pycolmap.create_default_bundle_adjuster(options, config, model).solve()
+    after = np.array([model.images[i].cam_from_world().rotation.matrix() for i in image_ids])
+    assert angles_between(before, after).max() < 0.002

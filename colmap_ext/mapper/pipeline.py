@@ -299,12 +299,13 @@ class IncrementalMapper:
         registered = list(model.poses)
         ratio = options.filtering.final_max_error_ratio if final else 0.0
         for _ in range(rounds if final else 1):
+            with self.timer("filtering"):
+                self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio *
+                                         median_reprojection_error(model, registered))
             self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True)
             with self.timer("filtering"):
                 removed, _ = filter_points(model, registered, options, final=final,
                                            max_error_ratio=ratio)
-                self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio *
-                                         median_reprojection_error(model, registered))
         if final and (ratio > 0 and removed or ba.final_loss != ba.loss):
             self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True,
                                 loss=ba.final_loss)
