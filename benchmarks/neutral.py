@@ -28,7 +28,7 @@ of the two on that seed and measure) on R_err median, R_err max and AUC@1 deg.
     python benchmarks/neutral.py [--seeds 0-9] [--sizes 30,150] [--noise 0.5,1.5]
         [--inlier_ratios 1.0,0.7,0.5] [--camera_models PINHOLE,SIMPLE_RADIAL]
         [--mappers ours,colmap_incremental,colmap_global] [--work_dir DIR]
-        [--markdown BENCHMARKS.md]
+        [--markdown BENCHMARKS.md] [--section neutral]
 """
 
 from __future__ import annotations
@@ -248,6 +248,8 @@ def main(argv: list[str] | None = None) -> int:
                              "there are reused")
     parser.add_argument("--markdown", default=None,
                         help="also write the table as a section of this file (BENCHMARKS.md)")
+    parser.add_argument("--section", default="neutral",
+                        help="that section's name, so that runs of different cases keep theirs")
     args = parser.parse_args(argv)
     mappers = [m for m in args.mappers.split(",") if m]
     camera_models = [m for m in args.camera_models.split(",") if m]
@@ -269,7 +271,7 @@ def main(argv: list[str] | None = None) -> int:
             (work / "results.json").write_text(json.dumps(raw, indent=1))
             body = section(rows, command.strip(), time.perf_counter() - start, args.num_points)
             if args.markdown:  # after every case: a long run keeps what it measured
-                update_section(Path(args.markdown), "neutral", body)
+                update_section(Path(args.markdown), args.section, body)
     print(body)
     return 0
 
