@@ -168,7 +168,7 @@ class FilteringOptions:
     # reprojection error (3 x: 3.5 standard deviations of Gaussian noise), and the model is
     # adjusted again without them, in BundleAdjustmentOptions.final_loss; 0:
     # max_reproj_error_px alone.
-    final_max_error_ratio: float = 3.0
+    final_max_error_ratio: float = 10.0
 
     def check(self) -> None:
         _require(self.max_reproj_error_px > 0, self, "max_reproj_error_px", "> 0")
@@ -203,10 +203,12 @@ class BundleAdjustmentOptions:
     # noise down-weights good observations and slows Ceres down; 1.7 x the median is
     # twice the standard deviation of Gaussian noise.
     noise_loss_scale_ratio: float = 1.7
-    # The loss of a finished model's last adjustment, after its last filter. With the
-    # outliers filtered out, least squares ("trivial") gives the maximum-likelihood poses
-    # on the observations kept, which the robust loss would down-weight.
-    final_loss: str = "trivial"
+    # The loss of a finished model's last adjustment, after its last filter. Least
+    # squares ("trivial") gives the maximum-likelihood poses on the observations kept,
+    # which the robust loss down-weights, where the filter leaves Gaussian noise alone
+    # (FilteringOptions.final_max_error_ratio 3: COLMAP's answer on its generator's
+    # sets); on the sparse turntables it loses images and accuracy (BENCHMARKS.md).
+    final_loss: str = "cauchy"
     # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
     function_tolerance: float = 1e-5
     # Smaller problems (residuals) are solved on one thread, larger on MapperOptions.threads().
