@@ -165,8 +165,8 @@ class FilteringOptions:
     # times the keypoint noise (filtering.rotation_uncertainty).
     max_rotation_uncertainty: float = 15.0
     # A finished model's filter also drops observations beyond this many times its median
-    # reprojection error (3 x: 3.5 standard deviations of Gaussian noise), and the model is
-    # adjusted again without them, in BundleAdjustmentOptions.final_loss; 0:
+    # reprojection error (3 would be 3.5 standard deviations of Gaussian noise), and the
+    # model is adjusted again without them, with BundleAdjustmentOptions.final_loss; 0:
     # max_reproj_error_px alone.
     final_max_error_ratio: float = 10.0
 
