@@ -107,7 +107,8 @@ def generate(case: Case, seed: int, num_points: int, folder: Path) -> PreparedSe
 
 def measure(model: pycolmap.Reconstruction | None, truth: GroundTruth,
             truth_model: pycolmap.Reconstruction) -> dict:
-    """The largest model's accuracy and size against the truth (an empty entry for no model)."""
+    """The largest model's accuracy and size against the truth (its image count alone
+    for no model, or one too small to align)."""
     if model is None or model.num_reg_images() < 3:
         return {"registered": 0 if model is None else model.num_reg_images()}
     cameras, _ = aligned_to_ground_truth(model, truth)
@@ -126,7 +127,8 @@ def run_seed(case: Case, seed: int, mappers: list[str], num_points: int, work: P
     """Every mapper once on the case's database of `seed`; its measures and resources."""
     folder = work / case.name / f"seed{seed}"
     prepared = generate(case, seed, num_points, folder)
-    truth, truth_model = read_ground_truth(prepared.ground_truth), pycolmap.Reconstruction(prepared.ground_truth)
+    truth = read_ground_truth(prepared.ground_truth)
+    truth_model = pycolmap.Reconstruction(prepared.ground_truth)
     results = {}
     turn = seed % len(mappers)
     for mapper in mappers[turn:] + mappers[:turn]:
