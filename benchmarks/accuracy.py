@@ -38,7 +38,7 @@ import pycolmap
 
 import colmap_ext
 from colmap_ext.compare import MAPPERS, compare
-from colmap_ext.evaluate import evaluate
+from colmap_ext.evaluate import AUC_KEY, evaluate, format_auc
 from colmap_ext.ground_truth import read_ground_truth
 from colmap_ext.synthetic import render_images, ring_scene, write_ground_truth
 
@@ -277,13 +277,14 @@ def result_rows(dataset: str, mappers: dict[str, dict]) -> list[list[str]]:
                      _cell(entry, "R_err_max_deg", 3), _cell(entry, "R_err_median_deg", 3),
                      _cell(entry, "T_err_max_deg", 3), _cell(entry, "T_err_median_deg", 3),
                      _cell(entry, "C_err_max", 4), _cell(entry, "C_err_median", 4),
+                     format_auc(entry) if AUC_KEY in entry else "–",
                      "–" if time_s is None else f"{time_s:.2f}", ratio])
     return rows
 
 
 HEADINGS = ["data set", "mapper", "registered", "R_err max [deg]", "R_err median [deg]",
             "T_err max [deg]", "T_err median [deg]", "C_err max", "C_err median",
-            "mapper time [s]", "time / COLMAP incremental"]
+            "AUC@0.5/1/5/10 deg [%]", "mapper time [s]", "time / COLMAP incremental"]
 
 
 def markdown_table(headings: list[str], rows: list[list[str]]) -> str:

@@ -165,7 +165,6 @@ def prepare_demo(work: Path, seed: int) -> PreparedSet:
 
 def prepare_synthetic(name: str, work: Path, seed: int) -> PreparedSet:
     """A synthetic database with placeholder images (our mapper reads colours from them)."""
-    import cv2
     import numpy as np
 
     from colmap_ext.synthetic import (ring_scene, scene_points, trajectory_scene,
@@ -189,12 +188,22 @@ def prepare_synthetic(name: str, work: Path, seed: int) -> PreparedSet:
         (folder / "images").mkdir(parents=True)
         write_synthetic_database(folder / "database.db", scene, points, noise_px=0.5,
                                  outlier_ratio=0.2, seed=seed, two_view_geometries=True)
-        placeholder = cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes()
-        for image_name in scene.image_names:
-            (folder / "images" / image_name).write_bytes(placeholder)
+        write_placeholder_images(folder / "images", scene.image_names)
         write_ground_truth(scene, folder / "ground_truth")
     return PreparedSet(name, folder / "database.db", folder / "images",
                        folder / "ground_truth", scene.num_images)
+
+
+def write_placeholder_images(folder: Path, names: list[str]) -> None:
+    """A black 8x8 PNG under each image name: a database without images still needs files
+    that our mapper can read point colours from."""
+    import cv2
+    import numpy as np
+
+    placeholder = cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes()
+    for name in names:
+        (folder / name).parent.mkdir(parents=True, exist_ok=True)
+        (folder / name).write_bytes(placeholder)
 
 
 def prepare(name: str, data: dict[str, Dataset], work: Path, seed: int) -> PreparedSet:

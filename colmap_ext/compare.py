@@ -49,7 +49,8 @@ from colmap_ext.colmap_mappers import (colmap_global_options, colmap_incremental
 from colmap_ext.database import check_database_file, copy_database
 from colmap_ext.errors import UserError
 from colmap_ext.features import quiet_colmap_logs
-from colmap_ext.evaluate import MEASURES, evaluate, summary_key
+from colmap_ext.evaluate import (AUC_KEY, AUC_THRESHOLDS_DEG, MEASURES, evaluate, format_auc,
+                                  summary_key)
 from colmap_ext.rig_consistency import database_rig_frames, rig_consistency
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper import MapperOptions
@@ -436,6 +437,7 @@ def format_mapper_table(report: dict) -> str:
     if with_gt:
         headings += [f"{key.removesuffix('_deg')} max / median" + (" [deg]" if unit == "deg" else "")
                      for key, unit in MEASURES.items()]
+        headings.append("AUC@" + "/".join(f"{t:g}" for t in AUC_THRESHOLDS_DEG) + " deg [%]")
     rows = []
     for name, entry in report["mappers"].items():
         registered = f"{entry['num_registered']}/{entry['num_images']}"
@@ -452,6 +454,7 @@ def format_mapper_table(report: dict) -> str:
         if with_gt:
             digits = {"R_err_deg": 3, "T_err_deg": 3, "C_err": 4, "C_err_aligned": 4}
             row += [_max_median(entry, key, digits[key]) for key in MEASURES]
+            row.append(format_auc(entry) if AUC_KEY in entry else "–")
         rows.append(row)
     return _markdown_table(headings, rows)
 
@@ -505,7 +508,10 @@ def format_markdown(report: dict, has_plot: bool) -> str:
     if report["ground_truth"]:
         lines.append("Pose errors (the paper's measures, relative to the first registered "
                      "image): R_err, T_err in degrees; C_err, C_err_aligned in units of the "
-                     "distance between the first two ground-truth cameras.")
+                     "distance between the first two ground-truth cameras. AUC (COLMAP's "
+                     "benchmark): per pair of images the larger of the relative rotation and "
+                     "translation-direction errors, images outside the model as infinite "
+                     "errors; area under the recall curve up to each threshold, in percent.")
     failed = {n: e["evaluation_error"] for n, e in report["mappers"].items() if "evaluation_error" in e}
     for name, message in failed.items():
         lines.append(f"- {name}: not evaluated: {message}")

@@ -8,6 +8,12 @@ ground-truth order), which removes the gauge without fitting anything:
 - C_err: |s C^_i - C_i| / |C_2 - C_1|, centres in the first camera's frame, s matching their spread.
 C_err_aligned replaces the first camera's frame and spread by the best similarity
 (Umeyama) from the estimated onto the ground-truth centres, in the same unit.
+
+Beside them, the field's measure (COLMAP's benchmark/reconstruction/evaluation, the GLOMAP
+paper, the Image Matching Challenge): the AUC of relative-pose errors. Per ordered pair of
+ground-truth images, the larger of the rotation error and the translation-direction error of
+tgt_from_src; a pair with an image outside the evaluated model counts as an infinite error;
+the area under the recall curve up to 0.5, 1, 5 and 10 degrees, in percent.
 """
 
 from __future__ import annotations
@@ -35,6 +41,10 @@ _SAME_CENTRE = 1e-6
 
 # Per-image measures (report keys) and their units in the printed table.
 MEASURES = {"R_err_deg": "deg", "T_err_deg": "deg", "C_err": "|C2-C1|", "C_err_aligned": "|C2-C1|"}
+
+# Thresholds of the relative-pose AUC in degrees, COLMAP's benchmark's, and its report key.
+AUC_THRESHOLDS_DEG = (0.5, 1.0, 5.0, 10.0)
+AUC_KEY = "AUC_percent"
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -115,8 +125,58 @@ def evaluate(reconstruction: pycolmap.Reconstruction, ground_truth: GroundTruth)
     for key, values in errors.items():
         report[summary_key(key, "max")] = float(np.max(values))
         report[summary_key(key, "median")] = float(np.median(values))
+    pair_errors = relative_pose_errors([ground_truth.poses[name] for name in names],
+                                       [matches[name].cam_from_world() if name in matches else None
+                                        for name in names])
+    report[AUC_KEY] = {f"{threshold:g}": float(auc) for threshold, auc
+                       in zip(AUC_THRESHOLDS_DEG, auc_percent(pair_errors, AUC_THRESHOLDS_DEG))}
     report["per_image"] = [{"name": name, **per_image[name]} for name in names]
     return report
+
+
+def relative_pose_errors(gt_poses: list[pycolmap.Rigid3d],
+                         est_poses: list[pycolmap.Rigid3d | None]) -> np.ndarray:
+    """Per ordered pair (src, tgt) of ground-truth images, the larger of the rotation error
+    and the angle between the translation directions of tgt_from_src, in degrees (COLMAP's
+    benchmark); infinite where either image has no estimate (None). The translation
+    direction is not compared where the two ground-truth centres coincide."""
+    registered = np.array([pose is not None for pose in est_poses])
+    R_gt = np.array([pose.rotation.matrix() for pose in gt_poses])
+    t_gt = np.array([pose.translation for pose in gt_poses])
+    R_est, t_est = np.tile(np.eye(3), (len(gt_poses), 1, 1)), np.zeros((len(gt_poses), 3))
+    for index, pose in enumerate(est_poses):
+        if pose is not None:
+            R_est[index], t_est[index] = pose.rotation.matrix(), pose.translation
+    centres = _centres(R_gt, t_gt)
+    same_centre = _SAME_CENTRE * np.sqrt(_spread(centres) / len(centres))
+    errors = []
+    for src in range(len(gt_poses)):
+        tgt = np.arange(len(gt_poses)) != src
+        R_rel_gt, R_rel_est = R_gt[tgt] @ R_gt[src].T, R_est[tgt] @ R_est[src].T
+        t_rel_gt, t_rel_est = t_gt[tgt] - R_rel_gt @ t_gt[src], t_est[tgt] - R_rel_est @ t_est[src]
+        rotation_error = rotation_angles_deg(np.swapaxes(R_rel_est, 1, 2) @ R_rel_gt)
+        direction_error = vector_angles_deg(t_rel_est, t_rel_gt)
+        direction_error[np.linalg.norm(t_rel_gt, axis=1) < same_centre] = 0.0
+        error = np.maximum(rotation_error, direction_error)
+        error[~(registered[src] & registered[tgt])] = np.inf
+        errors.append(error)
+    return np.concatenate(errors) if errors else np.zeros(0)
+
+
+def auc_percent(errors: np.ndarray, thresholds_deg: tuple[float, ...]) -> np.ndarray:
+    """Area under the recall-error curve from 0 to each threshold, over the threshold, in
+    percent: recall rises by 1/n at each sorted error, linearly in between (COLMAP's
+    benchmark's compute_auc, without its ground-truth accuracy floor)."""
+    errors = np.sort(np.asarray(errors, dtype=float))
+    recalls = np.r_[0.0, np.arange(1, len(errors) + 1) / len(errors)]
+    errors = np.r_[0.0, errors]
+    aucs = []
+    for threshold in thresholds_deg:
+        last = np.searchsorted(errors, threshold, side="right")
+        curve_errors = np.r_[errors[:last], threshold]
+        curve_recalls = np.r_[recalls[:last], recalls[last - 1]]
+        aucs.append(100 * np.trapezoid(curve_recalls, curve_errors) / threshold)
+    return np.array(aucs)
 
 
 def summary_key(measure: str, statistic: str) -> str:
@@ -228,4 +288,11 @@ def format_table(report: dict) -> str:
     for key, unit in MEASURES.items():
         maximum, median = report[summary_key(key, "max")], report[summary_key(key, "median")]
         lines.append(f"{key.removesuffix('_deg') + ':':<15}max {maximum:.4f}  median {median:.4f}  ({unit})")
+    lines.append(f"AUC@{'/'.join(report[AUC_KEY])} deg: {format_auc(report)}  "
+                 "(%, relative poses of image pairs)")
     return "\n".join(lines)
+
+
+def format_auc(report: dict) -> str:
+    """The AUC at each threshold, e.g. '98.12 / 99.06 / 99.81 / 99.91'."""
+    return " / ".join(f"{auc:.2f}" for auc in report[AUC_KEY].values())

@@ -92,6 +92,8 @@ def test_writes_every_file(compared):
     ours_row = next(line for line in markdown.splitlines() if line.startswith("| ours "))
     assert "time / COLMAP incremental" in markdown and f" {ratio:.2f}x " in ours_row
     assert "compare_reconstructions" in markdown
+    auc = report["mappers"]["ours"]["AUC_percent"]
+    assert "AUC@0.5/1/5/10 deg [%]" in markdown and " / ".join(f"{v:.2f}" for v in auc.values()) in ours_row
 
 
 def test_report_has_the_keys(compared, synthetic):
@@ -240,7 +242,7 @@ def test_failing_mapper_is_reported_and_the_others_still_run(synthetic, tmp_path
     cells = [cell.strip() for cell in row.strip("|").split("|")]
     assert cells[:6] == ["colmap_incremental", "failed: RuntimeError: solver exploded", "0", "0",
                          "–", "–"]
-    assert cells[7:] == ["–"] * 4  # no pose errors
+    assert cells[7:] == ["–"] * 5  # no pose errors, no AUC
     assert "time / COLMAP incremental" not in markdown  # no ratio to a failed mapper's time
     [(figure, _)] = figures
     assert_figure_shows(figure, {name: report["mappers"][name] for name in ("ours", "colmap_global")})

@@ -30,7 +30,7 @@ from colmap_ext.plots import plot_errors, plot_scene, view_frame
 REPORT_KEYS = {
     "num_gt_images", "num_registered", "R_err_max_deg", "R_err_median_deg", "T_err_max_deg",
     "T_err_median_deg", "C_err_max", "C_err_median", "C_err_aligned_max", "C_err_aligned_median",
-    "per_image",
+    "AUC_percent", "per_image",
 }
 PER_IMAGE_KEYS = {"name", "R_err_deg", "T_err_deg", "C_err", "C_err_aligned"}
 CAMERA = pycolmap.Camera(model="PINHOLE", width=640, height=480, params=[1500, 1500, 320, 240])
@@ -81,8 +81,27 @@ def test_identical_model_has_zero_errors_and_exact_keys() -> None:
     assert set(report) == REPORT_KEYS
     assert all(set(entry) == PER_IMAGE_KEYS for entry in report["per_image"])
     assert (report["num_gt_images"], report["num_registered"]) == (8, 8)
-    for key in REPORT_KEYS - {"per_image", "num_gt_images", "num_registered"}:
+    for key in REPORT_KEYS - {"per_image", "num_gt_images", "num_registered", "AUC_percent"}:
         assert report[key] == pytest.approx(0.0, abs=1e-9), key
+    assert report["AUC_percent"] == {"0.5": 100.0, "1": 100.0, "5": 100.0, "10": 100.0}
+
+
+def test_relative_pose_auc_of_a_hand_computed_example() -> None:
+    """Four cameras facing +z: img0 at the origin, turned 2 deg about z in the estimate
+    (its rotation and every translation direction it takes part in are 2 deg off), img3
+    unregistered. 12 ordered pairs: (1,2) and (2,1) exact, the 4 with img0 at 2 deg, the 6
+    with img3 infinite. Recall: 2/12 from 0 deg, rising linearly to 3/12 at 2 deg, 6/12
+    after. AUC@0.5 and @1: 2/12; @5: (2 * (2 + 3) / 2 + 3 * 6) / 12 / 5 = 23/60;
+    @10: (5 + 8 * 6) / 12 / 10 = 53/120."""
+    truth = {f"img{index}.png": pose_at(rotation([0, 0, 0]), centre)
+             for index, centre in enumerate([(0, 0, 0), (1, 0, 0), (0, 1, 0), (1, 1, 0)])}
+    estimate = dict(truth)
+    estimate["img0.png"] = rotated_in_place(truth["img0.png"], rotation([0, 0, np.radians(2)]))
+    del estimate["img3.png"]
+    auc = evaluate(model(estimate), ground_truth(truth))["AUC_percent"]
+    assert list(auc) == ["0.5", "1", "5", "10"]
+    np.testing.assert_allclose(list(auc.values()), [100 * 2 / 12, 100 * 2 / 12, 100 * 23 / 60,
+                                                    100 * 53 / 120], atol=1e-9)
 
 
 def test_rotation_perturbation_of_one_image() -> None:
@@ -535,5 +554,6 @@ def test_temple_sparse_ring_ground_truth_model_has_zero_errors(tmp_path: Path,
     to_reconstruction(gt).write(str(model_path))
     report = main(model_path, par, output=tmp_path / "report.json", plot=tmp_path / "errors.png")
     assert report["num_registered"] == report["num_gt_images"] == 16
-    for key in REPORT_KEYS - {"per_image", "num_gt_images", "num_registered"}:
+    for key in REPORT_KEYS - {"per_image", "num_gt_images", "num_registered", "AUC_percent"}:
         assert report[key] == pytest.approx(0.0, abs=1e-9), key
+    assert report["AUC_percent"] == {"0.5": 100.0, "1": 100.0, "5": 100.0, "10": 100.0}

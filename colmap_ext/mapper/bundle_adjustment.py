@@ -32,10 +32,12 @@ def posed_images(db: DatabaseContents, cameras: dict[int, pycolmap.Camera],
 
 
 def adjustment_options(options: MapperOptions, max_iterations: int,
-                       refine_intrinsics: bool = False,
-                       num_threads: int | None = None) -> pycolmap.BundleAdjustmentOptions:
-    """pycolmap's options for one adjustment with ours: the robust loss, Ceres's limits
-    and threads (default: options.threads()), and the intrinsics refined only where
+                       refine_intrinsics: bool = False, num_threads: int | None = None,
+                       loss: str | None = None,
+                       loss_scale_px: float | None = None) -> pycolmap.BundleAdjustmentOptions:
+    """pycolmap's options for one adjustment with ours: the loss and its scale (default:
+    the robust one, BundleAdjustmentOptions.loss and loss_scale_px), Ceres's limits and
+    threads (default: options.threads()), and the intrinsics refined only where
     `refine_intrinsics` and the options ask for it."""
     ba = options.bundle_adjustment
     refine = refine_intrinsics and ba.refines_intrinsics
@@ -44,8 +46,9 @@ def adjustment_options(options: MapperOptions, max_iterations: int,
         refine_principal_point=refine and ba.refine_principal_point,
         refine_extra_params=refine and ba.refine_extra_params,
         print_summary=False)
-    ba_options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType, ba.loss.upper())
-    ba_options.ceres.loss_function_scale = ba.loss_scale_px
+    ba_options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType,
+                                                  (loss or ba.loss).upper())
+    ba_options.ceres.loss_function_scale = loss_scale_px or ba.loss_scale_px
     ba_options.ceres.solver_options.max_num_iterations = max_iterations
     ba_options.ceres.solver_options.function_tolerance = ba.function_tolerance
     ba_options.ceres.solver_options.num_threads = num_threads or options.threads()
@@ -71,7 +74,8 @@ def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, options: Mapp
 
 
 def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
-                  max_iterations: int, refine_intrinsics: bool = False) -> int:
+                  max_iterations: int, refine_intrinsics: bool = False,
+                  loss: str | None = None, loss_scale_px: float | None = None) -> int:
     """Adjust, on the model's reconstruction in place, the poses of `image_ids` (except
     the model's fixed images) and the points they observe, as COLMAP's adjustments do:
     a point seen by at most BundleAdjustmentOptions.local_max_track_length images brings
@@ -79,8 +83,9 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     determined and enters through the observations of `image_ids` alone, held constant
     where they are just one. Without two constant images, two cameras fix the gauge.
     With `refine_intrinsics`, the intrinsics the options name are refined too, but for
-    the cameras in BundleAdjustmentOptions.constant_camera_ids.
-    Returns the number of Ceres iterations."""
+    the cameras in BundleAdjustmentOptions.constant_camera_ids; `loss` and
+    `loss_scale_px` replace the options' robust loss and its scale. Returns the number of
+    Ceres iterations."""
     ba = options.bundle_adjustment
     requested = set(image_ids)
     reconstruction = model.reconstruction
@@ -104,7 +109,8 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     if len(constant) < 2:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
 
-    ba_options = adjustment_options(options, max_iterations, refine_intrinsics)
+    ba_options = adjustment_options(options, max_iterations, refine_intrinsics, loss=loss,
+                                    loss_scale_px=loss_scale_px)
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
     variable_image_ids = requested - model.fixed_image_ids
     if not summary.is_solution_usable():

@@ -17,15 +17,15 @@ def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
     """Filter the observations in `image_ids` and the points they see. Before the end
     (`final` False), points younger than the grace period may keep two-view tracks.
 
-    An observation goes beyond max_reproj_error_px, and with `max_error_ratio` also
-    beyond that many times the median error of these observations. Where keypoints are
-    good to a few tenths of a pixel, an observation two pixels off is a near-miss match
-    that still pulls on the poses under the robust loss; which of them a model holds
-    depends on its run's RANSAC draws, and its poses did too.
+    An observation goes beyond `error_limit`: max_reproj_error_px or more where the
+    keypoint noise reaches it, and with `max_error_ratio` no more than that many times
+    the median error of these observations. Where keypoints are good to a few tenths of
+    a pixel, an observation two pixels off is a near-miss match that still pulls on the
+    poses under the robust loss; which of them a model holds depends on its run's RANSAC
+    draws, and its poses did too.
     Returns (observations removed, points removed)."""
-    limit = options.filtering.max_reproj_error_px
-    if max_error_ratio > 0:
-        limit = min(limit, max_error_ratio * median_reprojection_error(model, image_ids))
+    limit = error_limit(options.filtering.max_reproj_error_px,
+                        median_reprojection_error(model, image_ids), options, max_error_ratio)
     removed_observations = 0
     touched: set[int] = set()
     for image_id in image_ids:  # read afresh: a deletion may take a point of a later image
@@ -43,6 +43,19 @@ def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
             model.delete_point(point_id)
             removed_points += 1
     return removed_observations, removed_points
+
+
+def error_limit(max_error_px: float, median_error_px: float, options: MapperOptions,
+                max_error_ratio: float = 0.0) -> float:
+    """The reprojection error (px) beyond which an observation does not belong to its
+    point: `max_error_px`, raised to noise_max_error_ratio x the median error where the
+    keypoint noise reaches it (a threshold in pixels that the noise crosses drops true
+    observations and splits tracks), lowered to `max_error_ratio` x the median where
+    that is given and smaller."""
+    limit = max(max_error_px, options.filtering.noise_max_error_ratio * median_error_px)
+    if max_error_ratio > 0:
+        limit = min(limit, max_error_ratio * median_error_px)
+    return limit
 
 
 def median_reprojection_error(model: Model, image_ids: list[int]) -> float:

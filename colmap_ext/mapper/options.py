@@ -150,8 +150,11 @@ class FilteringOptions:
     """Dropping observations, points and images the model no longer supports
     (paper, step 4e; filtering.py)."""
 
-    # An observation is kept while it reprojects within this error (px).
+    # An observation is kept while it reprojects within this error (px) ...
     max_reproj_error_px: float = 3.0
+    # ... or within this many times the median error, where the keypoint noise reaches
+    # max_reproj_error_px: 3 x the median is 3.5 standard deviations of Gaussian noise.
+    noise_max_error_ratio: float = 3.0
     # A point is kept while its widest pair of rays spans this angle (deg).
     min_tri_angle_deg: float = 1.5
     # Images a point must be seen in ...
@@ -162,7 +165,8 @@ class FilteringOptions:
     # times the keypoint noise (filtering.rotation_uncertainty).
     max_rotation_uncertainty: float = 15.0
     # A finished model's filter also drops observations beyond this many times its median
-    # reprojection error, and the model is adjusted again without them; 0:
+    # reprojection error (3 would be 3.5 standard deviations of Gaussian noise), and the
+    # model is adjusted again without them, with BundleAdjustmentOptions.final_loss; 0:
     # max_reproj_error_px alone.
     final_max_error_ratio: float = 10.0
 
@@ -173,6 +177,7 @@ class FilteringOptions:
         _require(self.track_grace_registrations >= 0, self, "track_grace_registrations", ">= 0")
         _require(self.max_rotation_uncertainty > 0, self, "max_rotation_uncertainty", "> 0")
         _require(self.final_max_error_ratio >= 0, self, "final_max_error_ratio", ">= 0")
+        _require(self.noise_max_error_ratio >= 0, self, "noise_max_error_ratio", ">= 0")
 
 
 @dataclass
@@ -190,9 +195,20 @@ class BundleAdjustmentOptions:
     global_images_ratio: float = 1.1
     # Ceres iterations of a global adjustment.
     global_max_iterations: int = 50
-    # The robust loss, one of BA_LOSSES, and its scale (px).
+    # The robust loss, one of BA_LOSSES, and its scale (px) ...
     loss: str = "cauchy"
     loss_scale_px: float = 1.0
+    # ... raised to this many times the model's median reprojection error (measured at
+    # each global adjustment) where the keypoint noise reaches it: a scale below the
+    # noise down-weights good observations and slows Ceres down; 1.7 x the median is
+    # twice the standard deviation of Gaussian noise.
+    noise_loss_scale_ratio: float = 1.7
+    # The loss of a finished model's last adjustment, after its last filter. Least
+    # squares ("trivial") gives the maximum-likelihood poses on the observations kept,
+    # which the robust loss down-weights, where the filter leaves Gaussian noise alone
+    # (FilteringOptions.final_max_error_ratio 3: COLMAP's answer on its generator's
+    # sets); on the sparse turntables it loses images and accuracy (BENCHMARKS.md).
+    final_loss: str = "cauchy"
     # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
     function_tolerance: float = 1e-5
     # Smaller problems (residuals) are solved on one thread, larger on MapperOptions.threads().
@@ -216,7 +232,9 @@ class BundleAdjustmentOptions:
         _require(self.global_images_ratio > 1, self, "global_images_ratio", "> 1")
         _require(self.global_max_iterations >= 1, self, "global_max_iterations", ">= 1")
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
+        _require(self.final_loss in BA_LOSSES, self, "final_loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
+        _require(self.noise_loss_scale_ratio >= 0, self, "noise_loss_scale_ratio", ">= 0")
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
         _require(self.min_num_residuals_for_multi_threading >= 0, self,
                  "min_num_residuals_for_multi_threading", ">= 0")

@@ -23,7 +23,8 @@ from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.filtering import filter_images, filter_points, median_reprojection_error
+from colmap_ext.mapper.filtering import (error_limit, filter_images, filter_points,
+                                          median_reprojection_error)
 from colmap_ext.mapper.registration import (Outcome, descriptor_correspondences,
                                             register_image, track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
@@ -60,6 +61,9 @@ class IncrementalMapper:
             sorted(model.image_ids, key=lambda i: model.db.images[i].name))}
         self.trials: dict[int, int] = defaultdict(int)
         self.num_images_at_global_ba = 0
+        # The robust loss's scale, raised where the measured noise reaches it (see
+        # BundleAdjustmentOptions.noise_loss_scale_ratio); set at each global adjustment.
+        self.loss_scale_px = options.bundle_adjustment.loss_scale_px
         # Per unregistered image: model points it sees through verified matches, kept
         # between rounds and counted again only when a neighbour's observations change.
         self._visible: dict[int, int] = {}
@@ -126,13 +130,14 @@ class IncrementalMapper:
         """Triangulate the finished model's points again from its poses, then adjust it
         (final). The points it grew with were accepted within max_reproj_error_px while
         the poses were still moving; again from the final poses, each observation must lie
-        within retriangulation_max_error_ratio x the model's median reprojection error,
-        which leaves out the near-miss matches. Returns the number of points."""
+        within retriangulation_max_error_ratio x the model's median reprojection error
+        (filtering.error_limit), which leaves out the near-miss matches. Returns the
+        number of points."""
         model, options = self.model, self.options
         registered = list(model.poses)
-        limit = min(options.triangulation.max_reproj_error_px,
-                    options.triangulation.retriangulation_max_error_ratio *
-                    median_reprojection_error(model, registered))
+        limit = error_limit(options.triangulation.max_reproj_error_px,
+                            median_reprojection_error(model, registered), options,
+                            options.triangulation.retriangulation_max_error_ratio)
         strict = dataclasses.replace(options, triangulation=dataclasses.replace(
             options.triangulation, max_reproj_error_px=limit))
         with self.timer("triangulation"):
@@ -270,26 +275,31 @@ class IncrementalMapper:
     def _global_adjustment(self, final: bool = False, rounds: int = 2) -> None:
         """Adjust every registered image, then filter. `final`, the model's end: `rounds`
         rounds, their filter also relative to the model's median error
-        (final_max_error_ratio), and one more adjustment if the last filter dropped
-        observations."""
+        (final_max_error_ratio), and one more adjustment on what the last filter kept,
+        with the final loss (BundleAdjustmentOptions.final_loss), if that filter dropped
+        observations or the final loss is not the robust one."""
         model, options = self.model, self.options
+        ba = options.bundle_adjustment
         registered = list(model.poses)
-        max_iterations = options.bundle_adjustment.global_max_iterations
         ratio = options.filtering.final_max_error_ratio if final else 0.0
         for _ in range(rounds if final else 1):
-            self._bundle_adjust(registered, max_iterations, refine_intrinsics=True)
+            with self.timer("filtering"):
+                self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio *
+                                         median_reprojection_error(model, registered))
+            self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True)
             with self.timer("filtering"):
                 removed, _ = filter_points(model, registered, options, final=final,
                                            max_error_ratio=ratio)
-        if ratio > 0 and removed:
-            self._bundle_adjust(registered, max_iterations, refine_intrinsics=True)
+        if final and (ratio > 0 and removed or ba.final_loss != ba.loss):
+            self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True,
+                                loss=ba.final_loss)
         self.num_images_at_global_ba = model.num_registered
 
     def _bundle_adjust(self, image_ids: list[int], max_iterations: int,
-                       refine_intrinsics: bool = False) -> None:
+                       refine_intrinsics: bool = False, loss: str | None = None) -> None:
         with self.timer("bundle adjustment"):
             iterations = bundle_adjust(self.model, image_ids, self.options, max_iterations,
-                                       refine_intrinsics)
+                                       refine_intrinsics, loss, self.loss_scale_px)
         self.timer.counts["bundle adjustment solves"] += 1
         self.timer.counts["bundle adjustment iterations"] += iterations
 
