@@ -15,6 +15,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
+from colmap_ext.cameras import pixel_angles
 from colmap_ext.database import DatabaseContents
 from colmap_ext.mapper.descriptors import NearestDescriptors
 
@@ -65,8 +66,10 @@ class Model:
         return self.cameras[self.db.images[image_id].camera_id]
 
     def focal(self, image_id: int) -> float:
+        """Pixels per radian at the image's centre (cameras.pixel_angles: a model may
+        have no focal length)."""
         camera = self.camera(image_id)
-        return 0.5 * (camera.focal_length_x + camera.focal_length_y)
+        return 1.0 / float(pixel_angles(camera, [[camera.width / 2, camera.height / 2]])[0])
 
     def set_camera(self, camera_id: int, camera: pycolmap.Camera) -> None:
         """New intrinsics for a camera, and the rays of its images from them."""
