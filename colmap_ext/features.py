@@ -106,9 +106,6 @@ def check_camera(camera_model: str, camera_params: str | Sequence[float]) -> lis
         raise UserError(f"camera params must be numbers separated by commas, "
                         f"got {camera_params!r}") from None
     camera = pycolmap.Camera.create_from_model_name(0, camera_model, 1.0, 1, 1)
-    if not camera.focal_length_idxs():
-        raise UserError(f"camera model {camera_model} has no focal length; the relative "
-                        "pose solvers need a central projective camera")
     if len(params) != len(camera.params):
         raise UserError(f"camera model {camera_model} takes {len(camera.params)} params "
                         f"({camera.params_info}), got {len(params)}")
@@ -116,6 +113,9 @@ def check_camera(camera_model: str, camera_params: str | Sequence[float]) -> lis
         raise UserError(f"camera params must be finite, got {params}")
     if any(params[i] <= 0 for i in camera.focal_length_idxs()):
         raise UserError(f"focal lengths must be positive ({camera.params_info}), got {params}")
+    if not camera.focal_length_idxs() and any(value <= 0 for value in params):
+        # EQUIRECTANGULAR: the panorama's width and height
+        raise UserError(f"camera params must be positive ({camera.params_info}), got {params}")
     return params
 
 

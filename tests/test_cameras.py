@@ -46,3 +46,46 @@ def test_equirectangular_database_maps_without_image_files(tmp_path):
     report = evaluate(pycolmap.Reconstruction(tmp_path / "sparse" / "0"), ground_truth(truth))
     assert report["num_registered"] == 10
     assert report["R_err_max_deg"] < 1.0
+
+
+def _panoramic_scene(seed: int, num_points: int = 200, noise_rad: float = 3e-4):
+    """Points all around two cameras (as a 360-degree camera sees them): the true
+    cam2_from_cam1, unit rays with angular noise in both cameras (half of them with
+    z < 0), and the points in camera 1's frame."""
+    rng = np.random.default_rng(seed)
+    directions = rng.normal(size=(num_points, 3))
+    xyz = directions / np.linalg.norm(directions, axis=1, keepdims=True) * \
+        rng.uniform(4, 8, (num_points, 1))
+    cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(rng.normal(size=3) * 0.3),
+                                      np.array([1.0, 0.2, -0.1]))
+
+    def observed(points: np.ndarray) -> np.ndarray:
+        rays = points / np.linalg.norm(points, axis=1, keepdims=True)
+        rays = rays + rng.normal(scale=noise_rad, size=rays.shape)
+        return rays / np.linalg.norm(rays, axis=1, keepdims=True)
+
+    return cam2_from_cam1, observed(xyz), observed(xyz @ cam2_from_cam1.rotation.matrix().T +
+                                                  cam2_from_cam1.translation), xyz
+
+
+def _rotation_error_deg(a: pycolmap.Rigid3d, b: pycolmap.Rigid3d) -> float:
+    return float(np.degrees((a.rotation * b.rotation.inverse()).angle()))
+
+
+def test_solvers_take_rays_in_every_direction_with_angular_thresholds():
+    """Relative and absolute pose from rays all around the camera (half behind the image
+    plane), with one angle per correspondence: every true correspondence is an inlier
+    and the pose is within a few noise levels of the truth."""
+    import solvers
+
+    truth, rays1, rays2, xyz = _panoramic_scene(seed=1)
+    assert (rays1[:, 2] < 0).sum() > 50
+    thresholds = np.full(len(rays1), 4 * 3e-4)
+    relative = solvers.relative_pose(rays1, rays2, max_error=thresholds, seed=0)
+    assert relative.inlier_mask.mean() > 0.95
+    assert _rotation_error_deg(relative.cam2_from_cam1, truth) < 0.05
+    absolute = solvers.absolute_pose(rays2, xyz, max_error=thresholds, seed=0)
+    assert absolute.inlier_mask.mean() > 0.95
+    assert _rotation_error_deg(absolute.cam_from_world, truth) < 0.05
+    with pytest.raises(ValueError, match="one per correspondence"):
+        solvers.absolute_pose(rays2, xyz, max_error=thresholds[:-1])

@@ -12,33 +12,57 @@ using opengv::bearingVectors_t;
 using opengv::points_t;
 using opengv::absolute_pose::CentralAbsoluteAdapter;
 
-// Least squares over the inliers' reprojection errors (see refinement.hpp) in normalized
-// image units, in the rotation (exp(w) R) and the translation (t + u): 6 degrees of freedom.
+// The reprojection error of a world point seen along the unit ray f: the point's
+// position on the plane tangent to the unit sphere at f, B^T x / (f . x), with B an
+// orthonormal basis of that plane (two tangents of the angle between f and x). For rays
+// in any direction; a point at 90 degrees or more from its ray never fits.
+struct TangentFrame {
+  Eigen::Vector3d f;
+  Eigen::Matrix<double, 3, 2> B;
+};
+
+inline TangentFrame tangent_frame(const Eigen::Vector3d& f) {
+  TangentFrame frame{f, {}};
+  const Eigen::Vector3d a = f.unitOrthogonal();
+  frame.B << a, f.cross(a);
+  return frame;
+}
+
+// Depths along the ray at or below this never fit (the point is beside or behind it).
+constexpr double kMinDepth = 1e-9;
+
+// Least squares over the inliers' reprojection errors (see refinement.hpp), each over its
+// threshold, in the rotation (exp(w) R) and the translation (t + u): 6 degrees of freedom.
 class ReprojectionRefinement {
  public:
   using Vec = Eigen::Matrix<double, 6, 1>;
   using Mat = Eigen::Matrix<double, 6, 6>;
 
-  ReprojectionRefinement(const points_t& points, const std::vector<Eigen::Vector2d>& xy,
-                         const std::vector<int>& inliers, Pose* cam_from_world)
-      : points_(points), xy_(xy), inliers_(inliers), pose_(*cam_from_world) {}
+  ReprojectionRefinement(const points_t& points, const std::vector<TangentFrame>& frames,
+                         const std::vector<double>& weights, const std::vector<int>& inliers,
+                         Pose* cam_from_world)
+      : points_(points), frames_(frames), weights_(weights), inliers_(inliers),
+        pose_(*cam_from_world) {}
 
   double linearize(Mat* JtJ, Vec* Jtr) const {
     JtJ->setZero();
     Jtr->setZero();
     double cost = 0.0;
     for (int i : inliers_) {
+      const TangentFrame& frame = frames_[i];
       const Eigen::Vector3d RX = pose_.R * points_[i];
       const Eigen::Vector3d x = RX + pose_.t;
-      const double inv_z = 1.0 / x.z();
-      const Eigen::Vector2d r = x.head<2>() * inv_z - xy_[i];
-      Eigen::Matrix<double, 2, 3> dproject;  // d(x/z, y/z)/dx
-      dproject << inv_z, 0, -x.x() * inv_z * inv_z, 0, inv_z, -x.y() * inv_z * inv_z;
+      const double inv_depth = 1.0 / frame.f.dot(x);
+      const Eigen::Vector2d r = frame.B.transpose() * x * inv_depth;
+      // d(B^T x / f.x)/dx = (B^T - r f^T) / f.x
+      const Eigen::Matrix<double, 2, 3> dproject =
+          (frame.B.transpose() - r * frame.f.transpose()) * inv_depth;
       Eigen::Matrix<double, 2, 6> J;
       J << dproject * -skew(RX), dproject;  // dx/dw = -[R X]x, dx/du = I
+      J *= weights_[i];
       *JtJ += J.transpose() * J;
-      *Jtr += J.transpose() * r;
-      cost += r.squaredNorm();
+      *Jtr += J.transpose() * (weights_[i] * r);
+      cost += weights_[i] * weights_[i] * r.squaredNorm();
     }
     return cost;
   }
@@ -48,7 +72,9 @@ class ReprojectionRefinement {
     double cost = 0.0;
     for (int i : inliers_) {
       const Eigen::Vector3d x = pose.R * points_[i] + pose.t;
-      cost += (x.head<2>() / x.z() - xy_[i]).squaredNorm();
+      const double depth = frames_[i].f.dot(x);
+      if (depth <= kMinDepth) return std::numeric_limits<double>::infinity();
+      cost += weights_[i] * weights_[i] * (frames_[i].B.transpose() * x / depth).squaredNorm();
     }
     return cost;
   }
@@ -61,7 +87,8 @@ class ReprojectionRefinement {
   }
 
   const points_t& points_;
-  const std::vector<Eigen::Vector2d>& xy_;
+  const std::vector<TangentFrame>& frames_;
+  const std::vector<double>& weights_;  // 1 / each observation's threshold
   const std::vector<int>& inliers_;
   Pose& pose_;
 };
@@ -71,12 +98,12 @@ class AbsolutePoseEstimator {
   using Model = Pose;
   static constexpr int kSampleSize = 3;
 
-  AbsolutePoseEstimator(const bearingVectors_t& rays, const points_t& points, P3PMethod method)
-      : rays_(rays), points_(points), method_(method) {
-    constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-    xy_.reserve(rays.size());
-    for (const auto& f : rays)
-      xy_.push_back(f.z() > kMinRayZ ? Eigen::Vector2d(f.head<2>() / f.z()) : Eigen::Vector2d(kNaN, kNaN));
+  AbsolutePoseEstimator(const bearingVectors_t& rays, const points_t& points,
+                        const std::vector<double>& max_errors, P3PMethod method)
+      : rays_(rays), points_(points), method_(method), weights_(max_errors.size()) {
+    frames_.reserve(rays.size());
+    for (const auto& f : rays) frames_.push_back(tangent_frame(f));
+    for (size_t i = 0; i < max_errors.size(); ++i) weights_[i] = 1.0 / max_errors[i];
   }
 
   size_t num_data() const { return rays_.size(); }
@@ -91,17 +118,18 @@ class AbsolutePoseEstimator {
     for (const Pose& pose : p3p(s_rays, s_points, method_)) models->push_back(pose);
   }
 
-  // Reprojection error in normalized image units; points behind the camera never fit,
-  // nor do rays without normalized coordinates (NaN).
+  // The reprojection error over the observation's threshold, squared (inlier below 1);
+  // a point beside or behind its ray never fits.
   double squared_error(const Model& cam_from_world, size_t i) const {
     const Eigen::Vector3d x = cam_from_world.R * points_[i] + cam_from_world.t;
-    if (x.z() <= kMinRayZ) return std::numeric_limits<double>::infinity();
-    return (x.head<2>() / x.z() - xy_[i]).squaredNorm();
+    const double depth = frames_[i].f.dot(x);
+    if (depth <= kMinDepth) return std::numeric_limits<double>::infinity();
+    return weights_[i] * weights_[i] * (frames_[i].B.transpose() * x / depth).squaredNorm();
   }
 
   // Levenberg-Marquardt on the inliers' reprojection errors (6 degrees of freedom).
   bool refine(const std::vector<int>& inliers, Model* cam_from_world) const {
-    ReprojectionRefinement problem(points_, xy_, inliers, cam_from_world);
+    ReprojectionRefinement problem(points_, frames_, weights_, inliers, cam_from_world);
     return levenberg_marquardt<6>(problem);
   }
 
@@ -109,7 +137,8 @@ class AbsolutePoseEstimator {
   const bearingVectors_t& rays_;
   const points_t& points_;
   P3PMethod method_;
-  std::vector<Eigen::Vector2d> xy_;  // normalized image coordinates; NaN if none
+  std::vector<TangentFrame> frames_;
+  std::vector<double> weights_;  // 1 / each observation's threshold
 };
 
 }  // namespace
@@ -139,8 +168,10 @@ std::vector<Pose> p3p(const bearingVectors_t& rays, const points_t& points, P3PM
 }
 
 RansacResult<Pose> estimate_absolute_pose(const bearingVectors_t& rays, const points_t& points,
-                                          P3PMethod method, const RansacOptions& options) {
-  const AbsolutePoseEstimator estimator(rays, points, method);
+                                          const std::vector<double>& max_errors,
+                                          P3PMethod method, RansacOptions options) {
+  const AbsolutePoseEstimator estimator(rays, points, max_errors, method);
+  options.max_error = 1.0;  // errors arrive divided by their thresholds
   return ransac(estimator, options);
 }
 

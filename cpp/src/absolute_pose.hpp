@@ -14,10 +14,12 @@ enum class P3PMethod { kKneip, kGao };
 std::vector<Pose> p3p(const opengv::bearingVectors_t& rays, const opengv::points_t& points,
                       P3PMethod method);
 
-// Robust cam_from_world from unit rays and world points; max_error is the
-// reprojection error in normalized image units.
+// Robust cam_from_world from unit rays in any direction and world points; max_errors[i]
+// bounds observation i's reprojection error (tangent of the angle, about radians; see
+// absolute_pose.cpp). options.max_error is not read.
 RansacResult<Pose> estimate_absolute_pose(const opengv::bearingVectors_t& rays,
-                                          const opengv::points_t& points, P3PMethod method,
-                                          const RansacOptions& options);
+                                          const opengv::points_t& points,
+                                          const std::vector<double>& max_errors,
+                                          P3PMethod method, RansacOptions options);
 
 }  // namespace colmap_ext

@@ -40,7 +40,4 @@ inline Eigen::Matrix3d essential_from_pose(const Pose& cam2_from_cam1) {
   return skew(cam2_from_cam1.t) * cam2_from_cam1.R;
 }
 
-// Rays with z <= kMinRayZ have no normalized image coordinates; they never count as inliers.
-constexpr double kMinRayZ = 1e-9;
-
 }  // namespace colmap_ext

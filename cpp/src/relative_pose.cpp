@@ -92,20 +92,24 @@ bool in_front(const Pose& cam2_from_cam1, const Eigen::Vector3d& f1, const Eigen
   return det > 0 && gg * fc - fg * gc > 0 && fg * fc - ff * gc > 0;
 }
 
-// The Sampson error of one pair is c / sqrt(d): c = x2^T E x1 and d = |(E x1)_xy|^2 +
-// |(E^T x2)_xy|^2, for normalized image points x1, x2 (z = 1).
+// The angular Sampson error of a pair of unit rays is c / sqrt(d): c = f2^T E f1, and
+// d = |g1|^2 + |g2|^2 with g1 = E^T f2 - c f1 and g2 = E f1 - c f2 the gradients of c
+// within the tangent planes of f1 and f2. To first order, the angle (radians) by which the
+// rays must turn to meet; it holds for rays in any direction, behind the image plane too.
 struct SampsonTerms {
-  Eigen::Vector3d Ex1, Etx2;
+  Eigen::Vector3d g1, g2;
   double c, d;
 };
 
-inline SampsonTerms sampson_terms(const Eigen::Matrix3d& E, const Eigen::Vector2d& x1,
-                                  const Eigen::Vector2d& x2) {
+inline SampsonTerms sampson_terms(const Eigen::Matrix3d& E, const Eigen::Vector3d& f1,
+                                  const Eigen::Vector3d& f2) {
   SampsonTerms s;
-  s.Ex1 = E.leftCols<2>() * x1 + E.col(2);
-  s.Etx2 = E.topRows<2>().transpose() * x2 + E.row(2).transpose();
-  s.c = x2.dot(s.Ex1.head<2>()) + s.Ex1.z();
-  s.d = s.Ex1.head<2>().squaredNorm() + s.Etx2.head<2>().squaredNorm();
+  s.g2 = E * f1;
+  s.g1 = E.transpose() * f2;
+  s.c = f2.dot(s.g2);
+  s.g2 -= s.c * f2;
+  s.g1 -= s.c * f1;
+  s.d = s.g1.squaredNorm() + s.g2.squaredNorm();
   return s;
 }
 
@@ -117,9 +121,10 @@ class SampsonRefinement {
   using Vec = Eigen::Matrix<double, 5, 1>;
   using Mat = Eigen::Matrix<double, 5, 5>;
 
-  SampsonRefinement(const std::vector<Eigen::Vector2d>& x1, const std::vector<Eigen::Vector2d>& x2,
-                    const std::vector<int>& inliers, Pose* cam2_from_cam1)
-      : x1_(x1), x2_(x2), inliers_(inliers), pose_(*cam2_from_cam1) {
+  SampsonRefinement(const bearingVectors_t& rays1, const bearingVectors_t& rays2,
+                    const std::vector<double>& weights, const std::vector<int>& inliers,
+                    Pose* cam2_from_cam1)
+      : rays1_(rays1), rays2_(rays2), weights_(weights), inliers_(inliers), pose_(*cam2_from_cam1) {
     update_tangent();
   }
 
@@ -132,20 +137,20 @@ class SampsonRefinement {
     Jtr->setZero();
     double cost = 0.0;
     for (int i : inliers_) {
-      const Eigen::Vector3d x1 = x1_[i].homogeneous(), x2 = x2_[i].homogeneous();
-      const SampsonTerms s = sampson_terms(E, x1_[i], x2_[i]);
+      const Eigen::Vector3d& f1 = rays1_[i];
+      const Eigen::Vector3d& f2 = rays2_[i];
+      const SampsonTerms s = sampson_terms(E, f1, f2);
       const double inv_sqrt_d = 1.0 / std::sqrt(s.d);
       const double r = s.c * inv_sqrt_d;
-      // dr/dE = x2 x1^T / sqrt(d) - (r / d) (dd/dE) / 2
-      Eigen::Matrix3d G = inv_sqrt_d * x2 * x1.transpose();
+      // dr/dE = f2 f1^T / sqrt(d) - (r / d) (g2 f1^T + f2 g1^T)
       const double k = r * inv_sqrt_d * inv_sqrt_d;
-      G.topRows<2>() -= k * s.Ex1.head<2>() * x1.transpose();
-      G.leftCols<2>() -= k * x2 * s.Etx2.head<2>().transpose();
+      const Eigen::Matrix3d G = inv_sqrt_d * f2 * f1.transpose() -
+                                k * (s.g2 * f1.transpose() + f2 * s.g1.transpose());
       Vec J;
-      for (int p = 0; p < 5; ++p) J[p] = G.cwiseProduct(dE[p]).sum();
+      for (int p = 0; p < 5; ++p) J[p] = weights_[i] * G.cwiseProduct(dE[p]).sum();
       *JtJ += J * J.transpose();
-      *Jtr += r * J;
-      cost += r * r;
+      *Jtr += weights_[i] * r * J;
+      cost += weights_[i] * weights_[i] * r * r;
     }
     return cost;
   }
@@ -154,8 +159,8 @@ class SampsonRefinement {
     const Eigen::Matrix3d E = essential_from_pose(moved(delta));
     double cost = 0.0;
     for (int i : inliers_) {
-      const SampsonTerms s = sampson_terms(E, x1_[i], x2_[i]);
-      cost += s.c * s.c / s.d;
+      const SampsonTerms s = sampson_terms(E, rays1_[i], rays2_[i]);
+      cost += weights_[i] * weights_[i] * s.c * s.c / s.d;
     }
     return cost;
   }
@@ -175,8 +180,9 @@ class SampsonRefinement {
     tangent_ << a, pose_.t.cross(a);
   }
 
-  const std::vector<Eigen::Vector2d>& x1_;
-  const std::vector<Eigen::Vector2d>& x2_;
+  const bearingVectors_t& rays1_;
+  const bearingVectors_t& rays2_;
+  const std::vector<double>& weights_;  // 1 / each pair's threshold
   const std::vector<int>& inliers_;
   Pose& pose_;
   Eigen::Matrix<double, 3, 2> tangent_;
@@ -195,14 +201,9 @@ class RelativePoseEstimator {
   static constexpr int kSampleSize = 5;
 
   RelativePoseEstimator(const bearingVectors_t& rays1, const bearingVectors_t& rays2,
-                        FivePointMethod method)
-      : rays1_(rays1), rays2_(rays2), method_(method), x1_(rays1.size()), x2_(rays2.size()) {
-    constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-    for (size_t i = 0; i < rays1.size(); ++i) {
-      const bool valid = rays1[i].z() > kMinRayZ && rays2[i].z() > kMinRayZ;
-      x1_[i] = valid ? Eigen::Vector2d(rays1[i].head<2>() / rays1[i].z()) : Eigen::Vector2d(kNaN, kNaN);
-      x2_[i] = valid ? Eigen::Vector2d(rays2[i].head<2>() / rays2[i].z()) : Eigen::Vector2d(kNaN, kNaN);
-    }
+                        const std::vector<double>& max_errors, FivePointMethod method)
+      : rays1_(rays1), rays2_(rays2), method_(method), weights_(max_errors.size()) {
+    for (size_t i = 0; i < max_errors.size(); ++i) weights_[i] = 1.0 / max_errors[i];
   }
 
   size_t num_data() const { return rays1_.size(); }
@@ -218,11 +219,10 @@ class RelativePoseEstimator {
     }
   }
 
-  // Sampson error: first-order geometric error in normalized image units. NaN (never an
-  // inlier) for rays without normalized coordinates.
+  // The angular Sampson error over the pair's threshold, squared (inlier below 1).
   double squared_error(const Model& model, size_t i) const {
-    const SampsonTerms s = sampson_terms(model.E, x1_[i], x2_[i]);
-    return s.c * s.c / s.d;
+    const SampsonTerms s = sampson_terms(model.E, rays1_[i], rays2_[i]);
+    return weights_[i] * weights_[i] * s.c * s.c / s.d;
   }
 
   // Levenberg-Marquardt on the inliers' Sampson errors (5 degrees of freedom).
@@ -231,7 +231,7 @@ class RelativePoseEstimator {
       model->pose = decompose_essential(model->E, rays1_, rays2_, inliers);
       model->has_pose = true;
     }
-    SampsonRefinement problem(x1_, x2_, inliers, &model->pose);
+    SampsonRefinement problem(rays1_, rays2_, weights_, inliers, &model->pose);
     if (!levenberg_marquardt<5>(problem)) return false;
     model->E = essential_from_pose(model->pose);
     return true;
@@ -241,7 +241,7 @@ class RelativePoseEstimator {
   const bearingVectors_t& rays1_;
   const bearingVectors_t& rays2_;
   FivePointMethod method_;
-  std::vector<Eigen::Vector2d> x1_, x2_;  // normalized image points (x/z, y/z); NaN if none
+  std::vector<double> weights_;  // 1 / each pair's threshold
 };
 
 }  // namespace
@@ -283,9 +283,11 @@ Pose decompose_essential(const Eigen::Matrix3d& E, const bearingVectors_t& rays1
 }
 
 RelativePoseResult estimate_relative_pose(const bearingVectors_t& rays1,
-                                          const bearingVectors_t& rays2, FivePointMethod method,
-                                          const RansacOptions& options) {
-  const RelativePoseEstimator estimator(rays1, rays2, method);
+                                          const bearingVectors_t& rays2,
+                                          const std::vector<double>& max_errors,
+                                          FivePointMethod method, RansacOptions options) {
+  const RelativePoseEstimator estimator(rays1, rays2, max_errors, method);
+  options.max_error = 1.0;  // errors arrive divided by their thresholds
   RansacResult<RelativeModel> found = ransac(estimator, options);
   RelativePoseResult result;
   result.ransac.success = found.success;

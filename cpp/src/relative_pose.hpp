@@ -25,10 +25,11 @@ struct RelativePoseResult {
   Eigen::Matrix3d E = Eigen::Matrix3d::Zero();
 };
 
-// Robust cam2_from_cam1 from unit rays; max_error is the Sampson error in normalized
-// image units.
+// Robust cam2_from_cam1 from unit rays in any direction; max_errors[i] bounds pair i's
+// angular Sampson error (radians). options.max_error is not read.
 RelativePoseResult estimate_relative_pose(const opengv::bearingVectors_t& rays1,
                                           const opengv::bearingVectors_t& rays2,
-                                          FivePointMethod method, const RansacOptions& options);
+                                          const std::vector<double>& max_errors,
+                                          FivePointMethod method, RansacOptions options);
 
 }  // namespace colmap_ext
