@@ -5,6 +5,7 @@ subprocess, so that a crash inside pycolmap fails the test instead of ending pyt
 from __future__ import annotations
 
 import copy
+import sqlite3
 import subprocess
 import sys
 from pathlib import Path
@@ -31,6 +32,71 @@ def ground_truth(truth: pycolmap.Reconstruction) -> GroundTruth:
     images = sorted(truth.images.values(), key=lambda image: image.name)
     return GroundTruth(poses={image.name: copy.copy(image.cam_from_world()) for image in images},
                        cameras={image.name: copy.copy(image.camera) for image in images})
+
+
+# Each camera family of the issue, and the largest rotation error allowed against the truth
+# (0.5 px of noise: about 0.18 deg for the 1024-px panorama, 0.06 deg at f = 500 px).
+MODELS_AND_TOLERANCES_DEG = [("EQUIRECTANGULAR", 1.0), ("OPENCV_FISHEYE", 0.4),
+                             ("RADIAL_FISHEYE", 0.4), ("FOV", 0.4), ("EUCM", 0.4),
+                             ("SIMPLE_DIVISION", 0.4)]
+MAX_PAIR_ID = 2147483647  # COLMAP's pair id: image_id1 * MAX_PAIR_ID + image_id2
+
+
+def _without_keypoints(database: Path, image_id: int) -> None:
+    """Leave an image of the database without keypoints, descriptors and matches."""
+    with sqlite3.connect(database) as connection:
+        connection.execute("DELETE FROM keypoints WHERE image_id = ?", (image_id,))
+        connection.execute("DELETE FROM descriptors WHERE image_id = ?", (image_id,))
+        for table in ("matches", "two_view_geometries"):
+            connection.execute(f"DELETE FROM {table} WHERE pair_id / {MAX_PAIR_ID} = ? OR "
+                               f"pair_id % {MAX_PAIR_ID} = ?", (image_id, image_id))
+
+
+def _without_matches(database: Path, every: int) -> None:
+    """Delete the matches of every `every`-th pair (by pair id) of the database."""
+    with sqlite3.connect(database) as connection:
+        for table in ("matches", "two_view_geometries"):
+            connection.execute(f"DELETE FROM {table} WHERE pair_id % ? = 0", (every,))
+
+
+# (name, camera model, cameras, change to the database, images expected in the model or
+# the one line expected on stderr)
+DATABASES = [
+    *[(model, model, 1, None, 12) for model, _ in MODELS_AND_TOLERANCES_DEG],
+    ("two cameras", "OPENCV_FISHEYE", 2, None, 12),
+    ("an image without keypoints", "EQUIRECTANGULAR", 1,
+     lambda database: _without_keypoints(database, 3), 11),
+    ("every other pair without matches", "FOV", 1,
+     lambda database: _without_matches(database, every=2), 12),
+    ("no pair with matches", "FOV", 1, lambda database: _without_matches(database, every=1),
+     "colmap-ext: error: the database has no matches"),
+]
+
+
+@pytest.mark.parametrize("name, camera_model, num_cameras, change, expected", DATABASES,
+                         ids=[case[0] for case in DATABASES])
+def test_mapper_gives_a_model_or_one_line(tmp_path, name, camera_model, num_cameras, change,
+                                          expected):
+    """`colmap-ext mapper` over generated databases of every camera family (no image
+    files): each gives a model with every image it can register, within the model's
+    tolerance of the truth, or exits with one clear line."""
+    truth = write_pycolmap_dataset(tmp_path / "database.db", camera_model, seed=0,
+                                   num_images=12, num_cameras=num_cameras)
+    if change is not None:
+        change(tmp_path / "database.db")
+    result = run_mapper(tmp_path)
+    assert result.returncode >= 0, f"killed by signal {-result.returncode}"
+    if isinstance(expected, str):
+        errors = [line for line in result.stderr.splitlines() if line.startswith("colmap-ext: error")]
+        assert result.returncode == 1 and len(errors) == 1 and errors[0].startswith(expected), \
+            result.stderr[-2000:]
+        assert "Traceback" not in result.stderr
+        return
+    assert result.returncode == 0, result.stderr[-2000:]
+    report = evaluate(pycolmap.Reconstruction(tmp_path / "sparse" / "0"), ground_truth(truth))
+    assert report["num_registered"] == expected
+    tolerance = dict(MODELS_AND_TOLERANCES_DEG)[camera_model]
+    assert report["R_err_max_deg"] < tolerance
 
 
 def test_equirectangular_database_maps_without_image_files(tmp_path):
