@@ -155,3 +155,14 @@ def test_solvers_take_rays_in_every_direction_with_angular_thresholds():
     assert _rotation_error_deg(absolute.cam_from_world, truth) < 0.05
     with pytest.raises(ValueError, match="one per correspondence"):
         solvers.absolute_pose(rays2, xyz, max_error=thresholds[:-1])
+
+
+def test_reconstruct_takes_an_equirectangular_camera():
+    """`reconstruct --camera_model EQUIRECTANGULAR --camera_params W,H` was refused for
+    want of a focal length; a panorama's size must be positive."""
+    from colmap_ext.errors import UserError
+    from colmap_ext.features import check_camera
+
+    assert check_camera("EQUIRECTANGULAR", "5376,2688") == [5376.0, 2688.0]
+    with pytest.raises(UserError, match="must be positive"):
+        check_camera("EQUIRECTANGULAR", "5376,0")
