@@ -17,6 +17,10 @@ Writes the `cameras` section at the end of BENCHMARKS.md and prints it.
 
     python benchmarks/cameras.py [--models EQUIRECTANGULAR,...] [--seeds 0,1,2,3,4]
         [--data $COLMAP_EXT_DATA] [--work_dir DIR] [--markdown BENCHMARKS.md]
+
+With --loss_probe LOSS (and the --work_dir of an earlier run), ours runs again on each
+generated database with that bundle adjustment loss (MapperOptions.bundle_adjustment.loss),
+in this process, and prints R_err median / max per seed; nothing is written.
 """
 
 from __future__ import annotations
@@ -155,6 +159,23 @@ def flat_360_lines(entry: dict) -> list[str]:
     return lines
 
 
+def loss_probe(work: Path, models: list[str], seeds: list[int], loss: str) -> None:
+    """Ours with another bundle adjustment loss on the databases of an earlier run."""
+    from colmap_ext.mapper import MapperOptions
+    from colmap_ext.mapper.pipeline import run
+
+    for model in models:
+        for seed in seeds:
+            folder = work / model / f"seed{seed}"
+            options = MapperOptions(seed=seed)
+            options.bundle_adjustment.loss = loss
+            found = run(folder / "database.db", folder / "images", folder / f"ours_{loss}",
+                        options, overwrite=True, progress=False)
+            report = evaluate(found[0], read_colmap(folder / "truth"))
+            print(f"{model} seed {seed} ours, {loss} loss: R_err median / max "
+                  f"{report['R_err_median_deg']:.4f} / {report['R_err_max_deg']:.4f} deg")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -164,8 +185,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="folder holding 360_flat/ for the end-to-end run (skipped without)")
     parser.add_argument("--work_dir", default=None)
     parser.add_argument("--markdown", default=str(REPO / "BENCHMARKS.md"))
+    parser.add_argument("--loss_probe", default=None,
+                        help="rerun ours with this bundle adjustment loss (see above)")
     args = parser.parse_args(argv)
     seeds = [int(seed) for seed in args.seeds.split(",")]
+    if args.loss_probe:
+        loss_probe(Path(args.work_dir), args.models.split(","), seeds, args.loss_probe)
+        return 0
     start = time.perf_counter()
     with work_folder(args.work_dir, "colmap-ext-cameras-") as work:
         results = {model: {seed: run_generated(model, seed, work) for seed in seeds}
