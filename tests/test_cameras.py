@@ -166,3 +166,26 @@ def test_reconstruct_takes_an_equirectangular_camera():
     assert check_camera("EQUIRECTANGULAR", "5376,2688") == [5376.0, 2688.0]
     with pytest.raises(UserError, match="must be positive"):
         check_camera("EQUIRECTANGULAR", "5376,0")
+
+
+def test_points_a_fisheye_cannot_project_are_left_out_with_one_line(tmp_path, caplog):
+    """A keypoint at 89.9 degrees from a fisheye's axis and its point at 90.1 degrees: a
+    pixel or two apart, but pycolmap's fisheye models cannot project the point (bundle
+    adjustment could not take it). Its reprojection error is inf, said once in the log;
+    the same offset towards the axis is a finite error."""
+    from colmap_ext.database import read_database
+    from colmap_ext.mapper.model import Model
+
+    write_pycolmap_dataset(tmp_path / "database.db", "OPENCV_FISHEYE", seed=0, num_images=2)
+    model = Model(read_database(tmp_path / "database.db"), nearest=None)
+    image_id = model.image_ids[0]
+    model.register(image_id, pycolmap.Rigid3d())
+    angles = np.radians([89.9, 90.1, 89.7])
+    directions = np.stack([np.sin(angles), np.zeros(3), np.cos(angles)], axis=1)
+    model.rays[image_id][:2] = directions[0]
+    with caplog.at_level("WARNING"):
+        errors = model.reprojection_errors(image_id, np.array([0, 1]), directions[1:] * 5)
+        model.reprojection_errors(image_id, np.array([0]), directions[1:2] * 5)
+    assert np.isinf(errors[0]) and np.isfinite(errors[1])
+    notes = [r.getMessage() for r in caplog.records if "cannot project" in r.getMessage()]
+    assert len(notes) == 1 and "OPENCV_FISHEYE" in notes[0]

@@ -12,12 +12,20 @@ in COLMAP: deleting one of two deletes the point.
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pycolmap
 
 from colmap_ext.cameras import pixel_angles, rays
 from colmap_ext.database import DatabaseContents
 from colmap_ext.mapper.descriptors import NearestDescriptors
+
+logger = logging.getLogger(__name__)
+
+# Points this close (px) to their keypoint's ray that the camera model cannot project are
+# named in the log (Model._note_unprojectable): any threshold would have kept them.
+NOTED_UNPROJECTABLE_PX = 10.0
 
 
 class Model:
@@ -63,6 +71,7 @@ class Model:
         # Images whose observations changed since the mapper last looked (take_changed).
         self._changed: set[int] = set()
         self._next_point_id = 1  # COLMAP's point ids start at 1
+        self._noted_unprojectable = False
 
     # --- cameras ----------------------------------------------------------------
     def camera(self, image_id: int) -> pycolmap.Camera:
@@ -193,9 +202,24 @@ class Model:
         errors = angles / self.pixel_angles[image_id][kps]
         errors[~(along > 0) | np.isnan(errors)] = np.inf
         if len(x_cam):
-            projected = self.camera(image_id).img_from_cam(x_cam, check_cheirality=False)
-            errors[~np.isfinite(projected).all(axis=1)] = np.inf
+            # NaN behind a camera with an image plane (z <= 0), never for EQUIRECTANGULAR.
+            projected = self.camera(image_id).img_from_cam(x_cam)
+            outside = ~np.isfinite(projected).all(axis=1)
+            near = int(np.count_nonzero(outside & (errors <= NOTED_UNPROJECTABLE_PX)))
+            errors[outside] = np.inf
+            if near:
+                self._note_unprojectable(image_id, near)
         return errors
+
+    def _note_unprojectable(self, image_id: int, count: int) -> None:
+        """One log line per model: observations whose points the camera model cannot
+        project are left out (pycolmap's bundle adjustment could not take them)."""
+        if not self._noted_unprojectable:
+            self._noted_unprojectable = True
+            logger.warning("colmap-ext: %d observation(s) of image %d left out: camera model "
+                           "%s cannot project their points (beyond its field of view); "
+                           "later ones are left out without a word", count, image_id,
+                           self.camera(image_id).model.name)
 
     def centre(self, image_id: int) -> np.ndarray:
         return self.poses[image_id].inverse().translation
