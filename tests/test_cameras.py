@@ -139,9 +139,10 @@ def _rotation_error_deg(a: pycolmap.Rigid3d, b: pycolmap.Rigid3d) -> float:
 
 
 def test_solvers_take_rays_in_every_direction_with_angular_thresholds():
-    """Relative and absolute pose from rays all around the camera (half behind the image
-    plane), with one angle per correspondence: every true correspondence is an inlier
-    and the pose is within a few noise levels of the truth."""
+    """Relative and absolute pose and triangulation from rays all around the camera (half
+    behind the image plane), with one angle per correspondence: every true
+    correspondence is an inlier, the pose within a few noise levels of the truth, and
+    the points in front of both cameras where they are."""
     import solvers
 
     truth, rays1, rays2, xyz = _panoramic_scene(seed=1)
@@ -153,6 +154,10 @@ def test_solvers_take_rays_in_every_direction_with_angular_thresholds():
     absolute = solvers.absolute_pose(rays2, xyz, max_error=thresholds, seed=0)
     assert absolute.inlier_mask.mean() > 0.95
     assert _rotation_error_deg(absolute.cam_from_world, truth) < 0.05
+    xyz_found, valid = solvers.triangulate(pycolmap.Rigid3d(), truth, rays1, rays2,
+                                           min_angle_deg=2.0)
+    assert valid.mean() > 0.8
+    assert np.median(np.linalg.norm(xyz_found[valid] - xyz[valid], axis=1)) < 0.05
     with pytest.raises(ValueError, match="one per correspondence"):
         solvers.absolute_pose(rays2, xyz, max_error=thresholds[:-1])
 
