@@ -19,10 +19,10 @@ from colmap_ext.ground_truth import GroundTruth
 from colmap_ext.synthetic.pycolmap_generator import write_pycolmap_dataset
 
 
-def run_mapper(folder: Path, *flags: str) -> subprocess.CompletedProcess:
+def run_mapper(folder: Path, *flags: str, command: str = "mapper") -> subprocess.CompletedProcess:
     (folder / "images").mkdir(exist_ok=True)
     return subprocess.run(
-        [sys.executable, "-m", "colmap_ext", "mapper", "--database_path",
+        [sys.executable, "-m", "colmap_ext", command, "--database_path",
          str(folder / "database.db"), "--image_path", str(folder / "images"),
          "--output_path", str(folder / "sparse"), "--seed", "0", *flags],
         capture_output=True, text=True, timeout=600)
@@ -99,13 +99,14 @@ def test_mapper_gives_a_model_or_one_line(tmp_path, name, camera_model, num_came
     assert report["R_err_max_deg"] < tolerance
 
 
-def test_equirectangular_database_maps_without_image_files(tmp_path):
+@pytest.mark.parametrize("command", ["mapper", "hierarchical_mapper"])
+def test_equirectangular_database_maps_without_image_files(tmp_path, command):
     """Regression: pycolmap's focal-length accessors crashed the mapper (SIGSEGV) on a
     camera model without a focal length. The image files are absent: the model is made,
     its colours skipped with one warning."""
     truth = write_pycolmap_dataset(tmp_path / "database.db", "EQUIRECTANGULAR", seed=0,
                                    num_images=10)
-    result = run_mapper(tmp_path)
+    result = run_mapper(tmp_path, command=command)
     assert result.returncode == 0, result.stderr[-2000:]
     warnings = [line for line in result.stderr.splitlines() if "not under" in line]
     assert len(warnings) == 1 and "colours not extracted" in warnings[0]
