@@ -195,3 +195,20 @@ def test_points_a_fisheye_cannot_project_are_left_out_with_one_line(tmp_path, ca
     assert np.isinf(errors[0]) and np.isfinite(errors[1])
     notes = [r.getMessage() for r in caplog.records if "cannot project" in r.getMessage()]
     assert len(notes) == 1 and "OPENCV_FISHEYE" in notes[0]
+
+
+def test_pixel_angles_are_the_cameras_angular_resolution():
+    """1/f at a pinhole camera's principal point, less towards its corners; 2 pi / width
+    (and pi / height) on a panorama's equator, along x less towards the poles."""
+    from colmap_ext.cameras import pixel_angles
+
+    pinhole = pycolmap.Camera(model="PINHOLE", width=1000, height=800,
+                              params=[500, 500, 500, 400])
+    centre, corner = pixel_angles(pinhole, [[500, 400], [0, 0]])
+    assert centre == pytest.approx(1 / 500, rel=1e-6)
+    assert corner < 0.8 * centre
+    panorama = pycolmap.Camera(model="EQUIRECTANGULAR", width=2000, height=1000,
+                               params=[2000, 1000])
+    equator, near_pole = pixel_angles(panorama, [[1000, 500], [1000, 50]])
+    assert equator == pytest.approx(np.pi / 1000, rel=1e-4)
+    assert near_pole < 0.6 * equator
