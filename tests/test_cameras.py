@@ -87,7 +87,8 @@ def test_mapper_gives_a_model_or_one_line(tmp_path, name, camera_model, num_came
     result = run_mapper(tmp_path)
     assert result.returncode >= 0, f"killed by signal {-result.returncode}"
     if isinstance(expected, str):
-        errors = [line for line in result.stderr.splitlines() if line.startswith("colmap-ext: error")]
+        errors = [line for line in result.stderr.splitlines()
+                  if line.startswith("colmap-ext: error")]
         assert result.returncode == 1 and len(errors) == 1 and errors[0].startswith(expected), \
             result.stderr[-2000:]
         assert "Traceback" not in result.stderr

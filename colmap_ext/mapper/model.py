@@ -5,9 +5,10 @@ every edit below is made on it in place, and bundle adjustment solves on it dire
 so nothing is rebuilt for a solve. Beside it, for the vectorised geometry of every
 step, live arrays per image (unit rays in any direction and the angle a pixel spans
 at each keypoint, see colmap_ext/cameras.py; uint8 SIFT descriptors; and `point_of`,
-the point each keypoint observes or -1), the points' positions in a growable (P, 3) array indexed by point id, and a dict per point for
-its track (image id -> keypoint index). A point keeps at least two observations, as
-in COLMAP: deleting one of two deletes the point.
+the point each keypoint observes or -1), the points' positions in a growable (P, 3)
+array indexed by point id, and a dict per point for its track (image id -> keypoint
+index). A point keeps at least two observations, as in COLMAP: deleting one of two
+deletes the point.
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ from colmap_ext.mapper.descriptors import NearestDescriptors
 logger = logging.getLogger(__name__)
 
 # Points this close (px) to their keypoint's ray that the camera model cannot project are
-# named in the log (Model._note_unprojectable): any threshold would have kept them.
+# named in the log (Model._note_unprojectable): the mapper's thresholds, a few pixels,
+# would have kept them; points farther off are not observations worth a word.
 NOTED_UNPROJECTABLE_PX = 10.0
 
 

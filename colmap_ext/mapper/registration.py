@@ -80,7 +80,8 @@ def register_image(model: Model, image_id: int, kps: np.ndarray, point_ids: np.n
     try:
         result = solvers.absolute_pose(
             model.rays[image_id][pairs[:, 0]], model.xyz[pairs[:, 1]],
-            max_error=registration.abs_pose_max_error_px * model.pixel_angles[image_id][pairs[:, 0]],
+            max_error=registration.abs_pose_max_error_px *
+            model.pixel_angles[image_id][pairs[:, 0]],
             min_num_inliers=registration.abs_pose_min_num_inliers, seed=options.seed)
     except solvers.EstimationError:
         return Outcome.TOO_FEW_INLIERS
