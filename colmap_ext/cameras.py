@@ -15,14 +15,23 @@ import pycolmap
 
 # Half the step (pixels) over which pixel_angles measures the rays' spread.
 HALF_PIXEL = 0.5
+# A ray must project back to within this of its pixel (rays).
+MAX_ROUND_TRIP_PX = 0.01
 
 
 def rays(camera: pycolmap.Camera, points2D: np.ndarray) -> np.ndarray:
-    """(N, 3) unit rays through pixel positions; NaN rows where the model has none."""
+    """(N, 3) unit rays through pixel positions; NaN rows where the model has none, or
+    where the ray does not project back onto its pixel: pycolmap 4.2.1's fisheye models
+    return wrong rays, not NaN, for pixels 90 degrees or more from their axis (a lens
+    wider than 180 degrees)."""
     points2D = np.asarray(points2D, np.float64).reshape(-1, 2)
     if not len(points2D):
         return np.zeros((0, 3))
-    return np.asarray(camera.cam_ray_from_img(points2D), np.float64).reshape(-1, 3)
+    found = np.asarray(camera.cam_ray_from_img(points2D), np.float64).reshape(-1, 3)
+    back = np.asarray(camera.img_from_cam(found), np.float64).reshape(-1, 2)
+    with np.errstate(invalid="ignore"):
+        found[~(np.linalg.norm(back - points2D, axis=1) <= MAX_ROUND_TRIP_PX)] = np.nan
+    return found
 
 
 def pixel_angles(camera: pycolmap.Camera, points2D: np.ndarray) -> np.ndarray:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
 # Intrinsics per model for 1024 x 768 images (EQUIRECTANGULAR: 1024 x 512): a focal length
@@ -50,3 +51,44 @@ def write_pycolmap_dataset(database_path: str | Path, camera_model: str, seed: i
     finally:
         database.close()
     return truth
+
+
+# A 360-degree equidistant fisheye: r = f * angle from the axis fills a frame of this size.
+WIDE_FISHEYE_FOCAL_PX = 200.0
+WIDE_FISHEYE_SIZE = 1280
+
+
+def wide_fisheye_from_panoramas(database_path: str | Path, truth: pycolmap.Reconstruction,
+                                turn_deg: float = 90.0) -> None:
+    """Turn a database of EQUIRECTANGULAR images and its ground truth
+    (write_pycolmap_dataset) into those of an equidistant fisheye lens that sees every
+    direction (r = f * angle from its axis, up to 180 degrees), its axis turned by
+    `turn_deg` about each panorama's y axis: with 90, the scene (ahead of the panoramas)
+    straddles the edge of the front half. The camera is described by the closest COLMAP
+    model, OPENCV_FISHEYE without distortion, which holds the directions within 90
+    degrees of the axis alone; the keypoints beyond stay in the database, as a real lens
+    wider than 180 degrees gives them."""
+    turn = pycolmap.Rotation3d(np.array([0.0, np.radians(turn_deg), 0.0]))
+    focal_px, size = WIDE_FISHEYE_FOCAL_PX, WIDE_FISHEYE_SIZE
+    database = pycolmap.Database.open(str(database_path))
+    try:
+        panoramas = {camera.camera_id: camera for camera in database.read_all_cameras()}
+        for image in database.read_all_images():
+            keypoints = database.read_keypoints(image.image_id)
+            directions = panoramas[image.camera_id].cam_ray_from_img(keypoints[:, :2]) @ \
+                turn.matrix().T
+            angle = np.arctan2(np.linalg.norm(directions[:, :2], axis=1), directions[:, 2])
+            azimuth = np.arctan2(directions[:, 1], directions[:, 0])
+            keypoints[:, 0] = size / 2 + focal_px * angle * np.cos(azimuth)
+            keypoints[:, 1] = size / 2 + focal_px * angle * np.sin(azimuth)
+            database.update_keypoints(image.image_id, keypoints.astype(np.float32))
+        for camera in panoramas.values():
+            fisheye = pycolmap.Camera(model="OPENCV_FISHEYE", width=size, height=size,
+                                      params=[focal_px, focal_px, size / 2, size / 2, 0, 0, 0, 0],
+                                      camera_id=camera.camera_id)
+            database.update_camera(fisheye)
+            truth.cameras[camera.camera_id] = fisheye
+    finally:
+        database.close()
+    for frame in truth.frames.values():
+        frame.rig_from_world = pycolmap.Rigid3d(turn, np.zeros(3)) * frame.rig_from_world
