@@ -35,7 +35,7 @@ from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from
 from colmap_ext.mapper.bundle_adjustment import adjustment_options, posed_images
 from colmap_ext.mapper.initial_pair import check_requested_pair
 from colmap_ext.mapper.options import BundleAdjustmentOptions, MapperOptions, MergingOptions
-from colmap_ext.mapper.pipeline import StageTimer, reconstruct, summarize
+from colmap_ext.mapper.pipeline import StageTimer, colours_readable, reconstruct, summarize
 from colmap_ext.model_io import MAPPER_OUTPUT, OUTPUT_TYPES, replacing, write_json, write_models
 
 
@@ -544,11 +544,8 @@ def main(database_path: str, image_path: str, output_path: str,
         timer = StageTimer()
         with timer("read database"):
             db = read_database(database_path)
-        missing = [image.name for image in db.images.values()
-                   if not (images / image.name).is_file()]
-        if missing:
-            raise UserError(f"{len(missing)} images of the database are not under {images}: "
-                            f"{', '.join(missing[:3])}" + (" ..." if len(missing) > 3 else ""))
+        extract_colors = flags.get("Mapper.extract_colors") is not False and \
+            colours_readable(db, images)
         if ray_address is None:
             reconstructions, reports = hierarchical_mapping(db, mapper_options, options, None,
                                                             timer, progress)
@@ -560,7 +557,7 @@ def main(database_path: str, image_path: str, output_path: str,
             raise UserError("no model could be reconstructed: no cluster gave a relative pose "
                             "with enough well-triangulated points")
         with timer("export"):
-            if flags.get("Mapper.extract_colors") is not False:
+            if extract_colors:
                 for reconstruction in reconstructions:
                     reconstruction.extract_colors_for_all_images(str(images))
             write_models(reconstructions, new_output, output_type.upper())

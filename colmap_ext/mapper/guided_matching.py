@@ -17,7 +17,8 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
 
     Compatible: among the keypoint's `guided_num_neighbors` nearest descriptors, within
     `max_descriptor_distance`, and within the reprojection threshold of the epipolar
-    line (Sampson distance). The closest such descriptor wins; each keypoint of the
+    line (angular Sampson error, against the threshold in pixels times the mean angle a
+    pixel spans at the two keypoints). The closest such descriptor wins; each keypoint of the
     other image is used at most once. Returns (kps, other_kps, angles).
     """
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
@@ -27,10 +28,11 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     index, angles = index[kps], angles[kps]
     E = pycolmap.essential_matrix_from_pose(model.poses[other_id] *
                                             model.poses[image_id].inverse())
-    max_error = options.guided_matching.max_epipolar_error_px / model.focal(image_id)
-    x1 = np.repeat(model.normalized[image_id][kps], index.shape[1], axis=0)
-    errors = sampson_errors(E, x1, model.normalized[other_id][index.ravel()])
-    compatible = (errors.reshape(index.shape) <= max_error) & \
+    repeated = np.repeat(kps, index.shape[1])
+    max_errors = options.guided_matching.max_epipolar_error_px * pair_pixel_angles(
+        model, image_id, repeated, other_id, index.ravel())
+    errors = sampson_angles(E, model.rays[image_id][repeated], model.rays[other_id][index.ravel()])
+    compatible = (errors <= max_errors).reshape(index.shape) & \
         (angles <= options.guided_matching.max_descriptor_distance)
     first = np.argmax(compatible, axis=1)  # nearest compatible descriptor
     rows = np.flatnonzero(compatible.any(axis=1))
@@ -41,12 +43,22 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     return kps[keep], other[keep], angles[keep]
 
 
-def sampson_errors(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Sampson distance of corresponding normalized points to x2^T E x1 = 0."""
-    h1 = np.hstack([x1, np.ones((len(x1), 1))])
-    h2 = np.hstack([x2, np.ones((len(x2), 1))])
-    lines2 = h1 @ E.T  # epipolar lines in image 2 of image 1's points
-    lines1 = h2 @ E    # and in image 1 of image 2's points
-    residual = np.einsum("ij,ij->i", lines2, h2)
-    denominator = lines2[:, 0] ** 2 + lines2[:, 1] ** 2 + lines1[:, 0] ** 2 + lines1[:, 1] ** 2
+def pair_pixel_angles(model: Model, id1: int, kps1: np.ndarray, id2: int,
+                      kps2: np.ndarray) -> np.ndarray:
+    """The mean angle (radians) a pixel spans at two corresponding keypoints: what a
+    pixel threshold on a pair's epipolar error is multiplied by."""
+    return 0.5 * (model.pixel_angles[id1][kps1] + model.pixel_angles[id2][kps2])
+
+
+def sampson_angles(E: np.ndarray, rays1: np.ndarray, rays2: np.ndarray) -> np.ndarray:
+    """Angular Sampson errors (radians) of corresponding unit rays to rays2^T E rays1 = 0:
+    to first order, the angle by which the rays must turn to meet. Rays may point
+    anywhere (the solvers' relative-pose error, solvers.relative_pose)."""
+    along2 = rays1 @ E.T  # E f1: normal of f1's epipolar plane in camera 2
+    along1 = rays2 @ E    # E^T f2
+    residual = np.einsum("ij,ij->i", along2, rays2)
+    tangent2 = along2 - residual[:, None] * rays2
+    tangent1 = along1 - residual[:, None] * rays1
+    denominator = np.einsum("ij,ij->i", tangent1, tangent1) + \
+        np.einsum("ij,ij->i", tangent2, tangent2)
     return np.abs(residual) / np.sqrt(np.maximum(denominator, 1e-300))

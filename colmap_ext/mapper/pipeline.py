@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import logging
 import time
 from collections import defaultdict
 from contextlib import contextmanager
@@ -31,6 +32,8 @@ from colmap_ext.mapper.triangulation import triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
 
+
+logger = logging.getLogger(__name__)
 
 # Images tried per round before the mapper gives up on growing the model.
 MAX_CANDIDATES_PER_ROUND = 10
@@ -486,12 +489,12 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
         start = time.perf_counter()
         with timer("read database"):
             db = read_database(database_path)
-        _check_images(db, image_path)
+        extract_colors = options.extract_colors and colours_readable(db, image_path)
         reconstructions = reconstruct(db, options, image_names, timer, progress, existing)
         if not reconstructions:
             raise UserError(f"no model could be reconstructed: {_why_none(timer, options)}")
         with timer("export"):
-            if options.extract_colors:
+            if extract_colors:
                 for reconstruction in reconstructions:
                     reconstruction.extract_colors_for_all_images(str(image_path))
             write_models(reconstructions, new_output, output_type)
@@ -518,13 +521,17 @@ def _read_input_model(input_path: str | Path, output_path: str | Path) -> pycolm
     return read_model(input_path)
 
 
-def _check_images(db: DatabaseContents, image_path: Path) -> None:
-    """The images must be there: the model's point colours are read from them."""
+def colours_readable(db: DatabaseContents, image_path: Path) -> bool:
+    """Whether every image of the database is a file under `image_path`, to read the
+    points' colours from. If not, the model is made all the same, as `colmap mapper`
+    makes it, and one warning says the colours are skipped."""
     missing = [image.name for image in db.images.values()
                if not (image_path / image.name).is_file()]
     if missing:
-        raise UserError(f"{len(missing)} images of the database are not under {image_path}: "
-                        f"{', '.join(missing[:3])}" + (" ..." if len(missing) > 3 else ""))
+        logger.warning("colmap-ext: %d images of the database are not under %s (%s): point "
+                       "colours not extracted", len(missing), image_path,
+                       ", ".join(missing[:3]) + (" ..." if len(missing) > 3 else ""))
+    return not missing
 
 
 def summarize(reconstructions: list[pycolmap.Reconstruction], timer: StageTimer,
