@@ -5,7 +5,8 @@ cv2.findEssentialMat + cv2.recoverPose. Absolute pose: ours (P3P, OpenGV),
 pycolmap.estimate_absolute_pose, and cv2.solvePnPRansac (P3P, AP3P). Camera rigs: ours
 (GP3P; 5+1-point, 6-point and 17-point generalized relative pose, OpenGV) against
 pycolmap.estimate_generalized_absolute_pose and estimate_generalized_relative_pose. Each
-library runs with its default RANSAC settings except the inlier threshold (1 px for all);
+library runs with its default RANSAC settings except the inlier threshold (1 px for all;
+ours takes it as the angle 1 px subtends at the principal point, 1 / focal radians);
 every method sees the same problems. Prints Markdown tables.
 
     python benchmarks/solvers.py [--problems 20] [--sizes 200 2000] [--outliers 0.2 0.5]
@@ -33,6 +34,7 @@ FOCAL = 1000.0
 SIZE = 1000  # image width and height in pixels
 NOISE_PX = 0.5
 THRESHOLD_PX = 1.0
+THRESHOLD_RAD = THRESHOLD_PX / FOCAL  # ours: the angle of THRESHOLD_PX at the principal point
 K = np.array([[FOCAL, 0, SIZE / 2], [0, FOCAL, SIZE / 2], [0, 0, 1]])
 CAMERA = pycolmap.Camera(model="PINHOLE", width=SIZE, height=SIZE,
                          params=[FOCAL, FOCAL, SIZE / 2, SIZE / 2])
@@ -140,8 +142,10 @@ def rig_relative_problem(rng: np.random.Generator, n: int, outlier_ratio: float)
                    np.concatenate(cameras1)[:n], np.concatenate(cameras2)[:n])
 
 
-def normalized(pixels: np.ndarray) -> np.ndarray:
-    return (pixels - SIZE / 2) / FOCAL
+def rays(pixels: np.ndarray) -> np.ndarray:
+    """Unit rays of pixels of CAMERA, as the mapper gives them to the solvers."""
+    xy1 = np.column_stack([(pixels - SIZE / 2) / FOCAL, np.ones(len(pixels))])
+    return xy1 / np.linalg.norm(xy1, axis=1, keepdims=True)
 
 
 def rotation_error_deg(a: pycolmap.Rigid3d, b: pycolmap.Rigid3d) -> float:
@@ -161,8 +165,8 @@ def rigid(R: np.ndarray, t: np.ndarray) -> pycolmap.Rigid3d:
 
 def ours_relative(method):
     def run(p: Problem):
-        return solvers.relative_pose(normalized(p.pixels1), normalized(p.pixels2),
-                                     max_error=THRESHOLD_PX / FOCAL, method=method).cam2_from_cam1
+        return solvers.relative_pose(rays(p.pixels1), rays(p.pixels2),
+                                     max_error=THRESHOLD_RAD, method=method).cam2_from_cam1
     return run
 
 
@@ -184,8 +188,8 @@ def opencv_relative(p: Problem):
 
 def ours_absolute(method):
     def run(p: Problem):
-        return solvers.absolute_pose(normalized(p.pixels1), p.points3D,
-                                     max_error=THRESHOLD_PX / FOCAL, method=method).cam_from_world
+        return solvers.absolute_pose(rays(p.pixels1), p.points3D,
+                                     max_error=THRESHOLD_RAD, method=method).cam_from_world
     return run
 
 
@@ -207,8 +211,8 @@ def opencv_absolute(flag):
 def ours_rig_relative(method):
     def run(p: Problem):
         return solvers.generalized_relative_pose(
-            normalized(p.pixels1), p.cameras1, normalized(p.pixels2), p.cameras2, RIG,
-            max_error=THRESHOLD_PX / FOCAL, method=method).rig2_from_rig1
+            rays(p.pixels1), p.cameras1, rays(p.pixels2), p.cameras2, RIG,
+            max_error=THRESHOLD_RAD, method=method).rig2_from_rig1
     return run
 
 
@@ -223,8 +227,8 @@ def pycolmap_rig_relative(p: Problem):
 
 
 def ours_rig_absolute(p: Problem):
-    return solvers.generalized_absolute_pose(normalized(p.pixels1), p.cameras1, p.points3D, RIG,
-                                             max_error=THRESHOLD_PX / FOCAL).rig_from_world
+    return solvers.generalized_absolute_pose(rays(p.pixels1), p.cameras1, p.points3D, RIG,
+                                             max_error=THRESHOLD_RAD).rig_from_world
 
 
 def pycolmap_rig_absolute(p: Problem):
@@ -364,8 +368,10 @@ def main() -> None:
           f"confidence-based count (essential matrix), confidence {pnp.confidence}, "
           f"{pnp.min_num_trials} to {pnp.max_num_trials} trials (absolute pose); OpenCV "
           "findEssentialMat prob 0.999, 1000 iterations, solvePnPRansac 100 iterations, "
-          "confidence 0.99. Time: median wall time per call, from pixel coordinates (ours "
-          "includes their conversion to normalized coordinates). Errors: "
+          "confidence 0.99. Ours takes the threshold as an angle, "
+          f"{THRESHOLD_PX} px / f radians (the angle at the principal point). Time: median wall "
+          "time per call, from pixel coordinates (ours includes their conversion to unit rays). "
+          "Errors: "
           "median over the problems; rotation in degrees; translation as the angle to the "
           "true direction in degrees (relative pose) or as the camera-centre distance in "
           "scene units (absolute pose). 'failed': calls without a result.")

@@ -127,9 +127,6 @@ def check_camera(camera_model: str, camera_params: str | Sequence[float]) -> lis
         raise UserError(f"camera params must be numbers separated by commas, "
                         f"got {camera_params!r}") from None
     camera = pycolmap.Camera.create_from_model_name(0, camera_model, 1.0, 1, 1)
-    if not camera.focal_length_idxs():
-        raise UserError(f"camera model {camera_model} has no focal length; the relative "
-                        "pose solvers need a central projective camera")
     if len(params) != len(camera.params):
         raise UserError(f"camera model {camera_model} takes {len(camera.params)} params "
                         f"({camera.params_info}), got {len(params)}")
@@ -137,6 +134,9 @@ def check_camera(camera_model: str, camera_params: str | Sequence[float]) -> lis
         raise UserError(f"camera params must be finite, got {params}")
     if any(params[i] <= 0 for i in camera.focal_length_idxs()):
         raise UserError(f"focal lengths must be positive ({camera.params_info}), got {params}")
+    if not camera.focal_length_idxs() and any(value <= 0 for value in params):
+        # EQUIRECTANGULAR: the panorama's width and height
+        raise UserError(f"camera params must be positive ({camera.params_info}), got {params}")
     return params
 
 
@@ -189,7 +189,8 @@ def check_images(image_path: str | os.PathLike, names: Sequence[str], camera_mod
                  camera_model: str, params: Sequence[float],
                  mask_path: str | os.PathLike | None = None) -> dict[str, tuple[int, int]]:
     """Check that every image reads, that images sharing a camera share its size and
-    contain its principal point, and that every image has a mask of its size."""
+    contain its principal point (are of its size, for a camera without one, such as
+    EQUIRECTANGULAR), and that every image has a mask of its size."""
     if camera_mode not in CAMERA_MODES:
         raise UserError(f"unknown camera mode {camera_mode!r}; choose one of "
                         f"{', '.join(CAMERA_MODES)}")
@@ -204,11 +205,16 @@ def check_images(image_path: str | os.PathLike, names: Sequence[str], camera_mod
             raise UserError(f"images sharing one camera must have one size: {members[0]} is "
                             f"{w0}x{h0}, {odd[0]} is {w1}x{h1} (camera mode {camera_mode})")
     camera = pycolmap.Camera.create_from_model_name(0, camera_model, 1.0, 1, 1)
-    cx, cy = (params[i] for i in camera.principal_point_idxs())
+    principal_point = [params[i] for i in camera.principal_point_idxs()]
     for width, height in set(sizes.values()):
-        if not (0 <= cx <= width and 0 <= cy <= height):
-            raise UserError(f"principal point ({cx:g}, {cy:g}) is outside the {width}x{height} "
-                            "images: are the camera params for another image size?")
+        if not principal_point and [width, height] != list(params):  # EQUIRECTANGULAR
+            raise UserError(f"camera params {','.join(f'{p:g}' for p in params)} "
+                            f"({camera.params_info}) are not the images' size {width}x{height}")
+        if principal_point and not (0 <= principal_point[0] <= width and
+                                    0 <= principal_point[1] <= height):
+            raise UserError(f"principal point ({principal_point[0]:g}, {principal_point[1]:g}) "
+                            f"is outside the {width}x{height} images: are the camera params "
+                            "for another image size?")
     if mask_path is not None:
         check_masks(Path(mask_path), sizes)
     return sizes

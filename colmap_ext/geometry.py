@@ -51,12 +51,15 @@ def fit_similarity(source: np.ndarray, target: np.ndarray,
                           mean_target - scale * rotation @ mean_source)
 
 
-def sampson_errors(E: np.ndarray, x1: np.ndarray, x2: np.ndarray) -> np.ndarray:
-    """Sampson distance of corresponding normalized points to x2^T E x1 = 0."""
-    h1 = np.hstack([x1, np.ones((len(x1), 1))])
-    h2 = np.hstack([x2, np.ones((len(x2), 1))])
-    lines2 = h1 @ E.T  # epipolar lines in image 2 of image 1's points
-    lines1 = h2 @ E    # and in image 1 of image 2's points
-    residual = np.einsum("ij,ij->i", lines2, h2)
-    denominator = lines2[:, 0] ** 2 + lines2[:, 1] ** 2 + lines1[:, 0] ** 2 + lines1[:, 1] ** 2
+def sampson_angles(E: np.ndarray, rays1: np.ndarray, rays2: np.ndarray) -> np.ndarray:
+    """Angular Sampson errors (radians) of corresponding unit rays to rays2^T E rays1 = 0:
+    to first order, the angle by which the rays must turn to meet. Rays may point
+    anywhere (the solvers' relative-pose error, solvers.relative_pose)."""
+    along2 = rays1 @ E.T  # E f1: normal of f1's epipolar plane in camera 2
+    along1 = rays2 @ E    # E^T f2
+    residual = np.einsum("ij,ij->i", along2, rays2)
+    tangent2 = along2 - residual[:, None] * rays2
+    tangent1 = along1 - residual[:, None] * rays1
+    denominator = np.einsum("ij,ij->i", tangent1, tangent1) + \
+        np.einsum("ij,ij->i", tangent2, tangent2)
     return np.abs(residual) / np.sqrt(np.maximum(denominator, 1e-300))

@@ -36,6 +36,7 @@ import numpy as np
 import pycolmap
 
 import solvers
+from colmap_ext.cameras import pixel_angles, rays
 from colmap_ext.errors import UserError
 from colmap_ext.executors import Executor, LocalExecutor, chunks, items_per_task
 from colmap_ext.features import quiet_colmap_logs
@@ -376,25 +377,29 @@ def two_view_geometry(camera1: pycolmap.Camera, camera2: pycolmap.Camera,
     """CALIBRATED geometry (E, F, cam2_from_cam1, inliers) of one pair, or DEGENERATE."""
     if len(matches) < MIN_NUM_INLIERS:
         return pycolmap.TwoViewGeometry(config=Config.DEGENERATE)
-    rays1 = camera1.cam_ray_from_img(keypoints1[matches[:, 0]])
-    rays2 = camera2.cam_ray_from_img(keypoints2[matches[:, 1]])
+    points1, points2 = keypoints1[matches[:, 0], :2], keypoints2[matches[:, 1], :2]
+    rays1, rays2 = rays(camera1, points1), rays(camera2, points2)
+    max_errors = max_error_px * 0.5 * (pixel_angles(camera1, points1) +
+                                       pixel_angles(camera2, points2))
     # Keypoints outside a camera model's valid domain (far fisheye corners) give no ray.
-    valid = np.isfinite(rays1).all(axis=1) & np.isfinite(rays2).all(axis=1)
+    valid = np.isfinite(rays1).all(axis=1) & np.isfinite(rays2).all(axis=1) & \
+        np.isfinite(max_errors)
     if valid.sum() < MIN_NUM_INLIERS:
         return pycolmap.TwoViewGeometry(config=Config.DEGENERATE)
-    focal = (camera1.mean_focal_length() + camera2.mean_focal_length()) / 2
     try:
-        result = solvers.relative_pose(rays1[valid], rays2[valid], max_error=max_error_px / focal,
+        result = solvers.relative_pose(rays1[valid], rays2[valid], max_error=max_errors[valid],
                                        min_num_inliers=MIN_NUM_INLIERS, seed=seed)
     except solvers.EstimationError:
         return pycolmap.TwoViewGeometry(config=Config.DEGENERATE)
-    K1_inv = np.linalg.inv(camera1.calibration_matrix())
-    K2_inv = np.linalg.inv(camera2.calibration_matrix())
-    F = K2_inv.T @ result.E @ K1_inv
-    return pycolmap.TwoViewGeometry(
-        config=Config.CALIBRATED, E=result.E, F=F / np.linalg.norm(F),
-        cam2_from_cam1=result.cam2_from_cam1,
+    geometry = pycolmap.TwoViewGeometry(
+        config=Config.CALIBRATED, E=result.E, cam2_from_cam1=result.cam2_from_cam1,
         inlier_matches=np.ascontiguousarray(matches[valid][result.inlier_mask], dtype=np.uint32))
+    if camera1.is_perspective() and camera2.is_perspective():  # F needs a K (COLMAP's check)
+        K1_inv = np.linalg.inv(camera1.calibration_matrix())
+        K2_inv = np.linalg.inv(camera2.calibration_matrix())
+        F = K2_inv.T @ result.E @ K1_inv
+        geometry.F = F / np.linalg.norm(F)
+    return geometry
 
 
 # ------------------------------------------------------------------ exact matching

@@ -3,12 +3,18 @@ single cameras and camera rigs (generalized solvers), and
 the mapper's one compiled search kernel (`largest_per_row`).
 
 Conventions, once:
-- Inputs are undistorted bearing vectors: (N, 3) rays or (N, 2) normalized image
-  coordinates (x/z, y/z). `pycolmap.Camera.cam_from_img` gives the latter.
-- Thresholds (`max_error`) are in normalized image units: pixels / focal length.
+- Inputs are undistorted bearing vectors in any direction (behind the image plane too):
+  (N, 3) rays, as `pycolmap.Camera.cam_ray_from_img` gives them for every camera model,
+  or (N, 2) normalized image coordinates (x/z, y/z); a rig's rays are each in the frame
+  of the camera that made them.
+- Thresholds (`max_error`) are angles in radians, one for all correspondences or one
+  each (a pixel threshold times the camera's angular resolution at the keypoint), for
+  single cameras and rigs alike: absolute poses bound the reprojection error on the plane
+  tangent to each ray (through its rig camera), relative poses the angular Sampson error
+  (of each pair's camera pair).
 - Poses are `pycolmap.Rigid3d`: x_to = R x_from + t (cam2_from_cam1, cam_from_world;
   rig2_from_rig1, rig_from_world, cams_from_rig for rigs).
-- E is COLMAP's: x2^T E x1 = 0 for homogeneous normalized points.
+- E is COLMAP's: x2^T E x1 = 0 for rays (or homogeneous normalized points).
 """
 
 from solvers.api import (

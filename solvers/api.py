@@ -9,8 +9,8 @@ import numpy as np
 import pycolmap
 
 from solvers import _opengv
-from solvers.checks import (as_camera_index, as_points3D, as_pose_rows, as_rays, check_choice,
-                            check_positive, check_rig_has_baseline, check_same_length)
+from solvers.checks import (as_camera_index, as_points3D, as_pose_rows, as_rays, as_thresholds,
+                            check_choice, check_rig_has_baseline, check_same_length)
 
 RELATIVE_METHODS = ("stewenius", "nister")
 ABSOLUTE_METHODS = ("kneip", "gao")
@@ -58,9 +58,9 @@ def rigid3d(R: np.ndarray, t: np.ndarray) -> pycolmap.Rigid3d:
     return pycolmap.Rigid3d(pycolmap.Rotation3d(np.asarray(R)), np.asarray(t, dtype=np.float64))
 
 
-def _ransac_kwargs(max_error: float, max_iterations: int, min_iterations: int,
+def _ransac_kwargs(max_error, num_data: int, max_iterations: int, min_iterations: int,
                    confidence: float, seed: int | None) -> dict:
-    check_positive("max_error", max_error)
+    max_errors = as_thresholds(max_error, num_data)
     if int(max_iterations) < 1 or int(min_iterations) < 0 or min_iterations > max_iterations:
         raise ValueError("need 0 <= min_iterations <= max_iterations and max_iterations >= 1")
     if not 0.0 < confidence < 1.0:
@@ -69,15 +69,17 @@ def _ransac_kwargs(max_error: float, max_iterations: int, min_iterations: int,
         seed = secrets.randbits(64)
     elif not 0 <= int(seed) < 2**64:
         raise ValueError(f"seed must be a non-negative 64-bit integer, got {seed}")
-    return dict(max_error=float(max_error), max_iterations=int(max_iterations),
+    return dict(max_errors=max_errors, max_iterations=int(max_iterations),
                 min_iterations=int(min_iterations), confidence=float(confidence), seed=int(seed))
 
 
-def relative_pose(rays1, rays2, *, max_error: float, method: str = "stewenius",
+def relative_pose(rays1, rays2, *, max_error: float | np.ndarray, method: str = "stewenius",
                   max_iterations: int = 10000, min_iterations: int = 10,
                   confidence: float = 0.9999, min_num_inliers: int = 15,
                   seed: int | None = None) -> RelativePoseResult:
-    """cam2_from_cam1 and E by 5-point LO-MSAC; Sampson error threshold `max_error`.
+    """cam2_from_cam1 and E by 5-point LO-MSAC on rays in any direction; `max_error`
+    bounds each pair's angular Sampson error (radians: the angle by which the two rays
+    must turn to meet, to first order), one for all pairs or one per pair.
 
     `method` "stewenius" (default) or "nister": the same model, but OpenGV's Nister solver
     is slower and misses the true solution of a sample in a few percent of cases.
@@ -90,7 +92,7 @@ def relative_pose(rays1, rays2, *, max_error: float, method: str = "stewenius",
     f1, f2 = as_rays(rays1, "rays1"), as_rays(rays2, "rays2")
     check_same_length(f1, f2, "rays1", "rays2", minimum=5)
     out = _opengv.relative_pose(f1, f2, method, **_ransac_kwargs(
-        max_error, max_iterations, min_iterations, confidence, seed))
+        max_error, len(f1), max_iterations, min_iterations, confidence, seed))
     if not out["success"] or out["num_inliers"] < max(5, min_num_inliers):
         raise EstimationError(f"no relative pose: {out['num_inliers']} of {len(f1)} "
                               f"correspondences agree (need {max(5, min_num_inliers)})")
@@ -98,20 +100,23 @@ def relative_pose(rays1, rays2, *, max_error: float, method: str = "stewenius",
                               out["num_inliers"], out["num_iterations"])
 
 
-def absolute_pose(rays, points3D, *, max_error: float, method: str = "kneip",
+def absolute_pose(rays, points3D, *, max_error: float | np.ndarray, method: str = "kneip",
                   max_iterations: int = 10000, min_iterations: int = 10,
                   confidence: float = 0.9999, min_num_inliers: int = 6,
                   seed: int | None = None) -> AbsolutePoseResult:
     """cam_from_world by P3P LO-MSAC, refined on the inliers (non-linear, OpenGV).
 
-    `max_error` bounds the reprojection error in normalized image units. Raises
+    `max_error` bounds each reprojection error (radians, one for all or one per ray):
+    the angle between a ray and its point, as the point's offset on the plane tangent
+    to the unit sphere at the ray (tan of the angle); a point 90 degrees or more from
+    its ray never fits, so rays may point anywhere, behind the image plane too. Raises
     EstimationError when fewer than `min_num_inliers` correspondences agree.
     """
     check_choice("method", method, ABSOLUTE_METHODS)
     f, X = as_rays(rays, "rays"), as_points3D(points3D, "points3D")
     check_same_length(f, X, "rays", "points3D", minimum=3)
     out = _opengv.absolute_pose(f, X, method, **_ransac_kwargs(
-        max_error, max_iterations, min_iterations, confidence, seed))
+        max_error, len(f), max_iterations, min_iterations, confidence, seed))
     if not out["success"] or out["num_inliers"] < max(4, min_num_inliers):
         raise EstimationError(f"no absolute pose: {out['num_inliers']} of {len(f)} "
                               f"correspondences agree (need {max(4, min_num_inliers)})")
@@ -120,8 +125,9 @@ def absolute_pose(rays, points3D, *, max_error: float, method: str = "kneip",
 
 
 def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
-                              cams_from_rig: list[pycolmap.Rigid3d], *, max_error: float,
-                              method: str = "fivept_plus_one", max_iterations: int = 10000,
+                              cams_from_rig: list[pycolmap.Rigid3d], *,
+                              max_error: float | np.ndarray, method: str = "fivept_plus_one",
+                              max_iterations: int = 10000,
                               min_iterations: int = 10, confidence: float = 0.9999,
                               min_num_inliers: int = 15,
                               seed: int | None = None) -> GeneralizedRelativePoseResult:
@@ -131,8 +137,8 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
     Correspondence i is ray `rays1[i]` of camera `camera_index1[i]` in frame 1 and
     `rays2[i]` of camera `camera_index2[i]` in frame 2; `cams_from_rig[c]` is camera c's
     pose in the rig. The translation is metric: the rig needs cameras at different
-    centres. `max_error` bounds each pair's Sampson error in normalized image units (as
-    `relative_pose`'s). `method`:
+    centres. `max_error` bounds each pair's angular Sampson error in its camera pair
+    (radians, one for all pairs or one per pair, as `relative_pose`'s). `method`:
     - "fivept_plus_one" (default): the 5-point solver on five correspondences of one
       camera pair, the scale from a sixth of another pair; needs a camera pair with five
       correspondences and another with one (a rig moving, its cameras seeing the scene
@@ -142,7 +148,7 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
     - "seventeenpt": Li's linear 17 points, whose sample needs far more iterations with
       outliers.
     Samples of a single camera pair are skipped: they leave the scale open. The pose is
-    refined on the inliers (Sampson errors, Levenberg-Marquardt). Raises EstimationError
+    refined on the inliers (angular Sampson errors, Levenberg-Marquardt). Raises EstimationError
     when fewer than `min_num_inliers` correspondences agree.
     """
     check_choice("method", method, GENERALIZED_RELATIVE_METHODS)
@@ -156,7 +162,7 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
     check_same_length(f1, c1, "rays1", "camera_index1")
     check_same_length(f2, c2, "rays2", "camera_index2")
     out = _opengv.generalized_relative_pose(f1, c1, f2, c2, rig, method, **_ransac_kwargs(
-        max_error, max_iterations, min_iterations, confidence, seed))
+        max_error, len(f1), max_iterations, min_iterations, confidence, seed))
     need = max(sample_size, min_num_inliers)
     if not out["success"] or out["num_inliers"] < need:
         raise EstimationError(f"no generalized relative pose: {out['num_inliers']} of "
@@ -166,7 +172,7 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
 
 
 def generalized_absolute_pose(rays, camera_index, points3D, cams_from_rig: list[pycolmap.Rigid3d],
-                              *, max_error: float, max_iterations: int = 10000,
+                              *, max_error: float | np.ndarray, max_iterations: int = 10000,
                               min_iterations: int = 10, confidence: float = 0.9999,
                               min_num_inliers: int = 6,
                               seed: int | None = None) -> GeneralizedAbsolutePoseResult:
@@ -174,8 +180,9 @@ def generalized_absolute_pose(rays, camera_index, points3D, cams_from_rig: list[
 
     Ray `rays[i]` of camera `camera_index[i]` sees world point `points3D[i]`;
     `cams_from_rig[c]` is camera c's pose in the rig. `max_error` bounds the reprojection
-    error in the observing camera's normalized image units (as `absolute_pose`'s). Raises
-    EstimationError when fewer than `min_num_inliers` correspondences agree.
+    error on the plane tangent to each ray, through the observing camera (radians, one for
+    all or one per ray, as `absolute_pose`'s). Raises EstimationError when fewer than
+    `min_num_inliers` correspondences agree.
     """
     f, X = as_rays(rays, "rays"), as_points3D(points3D, "points3D")
     rig = as_pose_rows(cams_from_rig, "cams_from_rig")
@@ -183,7 +190,7 @@ def generalized_absolute_pose(rays, camera_index, points3D, cams_from_rig: list[
     check_same_length(f, X, "rays", "points3D", minimum=3)
     check_same_length(f, cameras, "rays", "camera_index")
     out = _opengv.generalized_absolute_pose(f, cameras, X, rig, **_ransac_kwargs(
-        max_error, max_iterations, min_iterations, confidence, seed))
+        max_error, len(f), max_iterations, min_iterations, confidence, seed))
     need = max(4, min_num_inliers)
     if not out["success"] or out["num_inliers"] < need:
         raise EstimationError(f"no generalized absolute pose: {out['num_inliers']} of "

@@ -46,6 +46,24 @@ def check_same_length(a: np.ndarray, b: np.ndarray, name_a: str, name_b: str,
         raise ValueError(f"need at least {minimum} correspondences, got {len(a)}")
 
 
+def as_thresholds(max_error, num_data: int) -> np.ndarray:
+    """(num_data,) positive finite thresholds from one value or one per datum."""
+    try:
+        array = np.asarray(max_error, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"max_error must be a positive finite number or array, "
+                         f"got {max_error!r}") from None
+    if array.ndim == 0:
+        check_positive("max_error", max_error)
+        return np.full(num_data, float(array))
+    if array.shape != (num_data,):
+        raise ValueError(f"max_error must be one number or one per correspondence "
+                         f"({num_data}), got shape {array.shape}")
+    if not (np.isfinite(array).all() and (array > 0).all()):
+        raise ValueError("max_error must hold positive finite numbers")
+    return np.ascontiguousarray(array)
+
+
 def check_positive(name: str, value: float) -> None:
     if not (isinstance(value, (int, float, np.floating)) and np.isfinite(value) and value > 0):
         raise ValueError(f"{name} must be a positive finite number, got {value!r}")

@@ -395,21 +395,6 @@ def _(env):
     return env.mapper(env.small_db(), env.inputs / "no_such_folder")
 
 
-@case("images_folder_unreadable", "images of the database are not under", unprivileged=True)
-def _(env):
-    images = env.images()
-    images.chmod(0)
-    return env.mapper(env.small_db(), images)
-
-
-@case("images_not_in_folder", "images of the database are not under")
-def _(env):
-    images = env.images()
-    for path in sorted(images.iterdir())[:2]:
-        path.unlink()
-    return env.mapper(env.small_db(), images)
-
-
 @case("image_list_missing", "cannot read image list")
 def _(env):
     return env.mapper(env.small_db(), None, None, "--image_list_path", str(env.inputs / "nope.txt"))
@@ -1472,15 +1457,6 @@ def _(env):
       code=2, command="hierarchical_mapper")
 def _(env):
     return ["hierarchical_mapper", "--image_path", str(env.images()), "--output_path", str(env.out)]
-
-
-@case("hier_images_not_in_folder", "images of the database are not under",
-      command="hierarchical_mapper")
-def _(env):
-    database = env.small_db()
-    (env.inputs / "other").mkdir()
-    return ["hierarchical_mapper", "--database_path", str(database), "--image_path",
-            str(env.inputs / "other"), "--output_path", str(env.out)]
 
 
 @case("hier_previous_model", "already holds a model; pass --overwrite",

@@ -129,7 +129,7 @@ def test_masked_pixels_give_no_keypoints(images: Path, tmp_path: Path) -> None:
     ("PINHOLE", "300,300,x,120", "numbers separated by commas"),
     ("PINHOLE", "-300,300,160,120", "focal lengths must be positive"),
     ("PINHOLE", "300,300,1600,1200", "principal point (1600, 1200) is outside the 320x240"),
-    ("EQUIRECTANGULAR", "320,240", "no focal length"),
+    ("EQUIRECTANGULAR", "640,320", "camera params 640,320 (w,h) are not the images' size 320x240"),
 ])
 def test_bad_camera_is_refused_before_any_work(images: Path, tmp_path: Path, model: str,
                                                params: str, message: str) -> None:

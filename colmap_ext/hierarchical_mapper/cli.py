@@ -13,7 +13,7 @@ from colmap_ext.errors import UserError
 from colmap_ext.hierarchical_mapper.options import MAPPER_DEFAULTS, HierarchicalOptions
 from colmap_ext.hierarchical_mapper.pipeline import hierarchical_mapping
 from colmap_ext.mapper.cli import add_option_flags, format_summary, options_from_flags
-from colmap_ext.mapper.pipeline import check_images, write_result
+from colmap_ext.mapper.pipeline import colours_readable, write_result
 from colmap_ext.model_io import MAPPER_OUTPUT, OUTPUT_TYPES, replacing
 from colmap_ext.timing import StageTimer
 
@@ -68,7 +68,7 @@ def main(database_path: str, image_path: str, output_path: str,
         timer = StageTimer()
         with timer("read database"):
             db = read_database(database_path)
-        check_images(db, images)
+        extract_colors = mapper_options.extract_colors and colours_readable(db, images)
         if ray_address is None:
             reconstructions, reports = hierarchical_mapping(db, mapper_options, options, None,
                                                             timer, progress)
@@ -79,7 +79,7 @@ def main(database_path: str, image_path: str, output_path: str,
         if not reconstructions:
             raise UserError("no model could be reconstructed: no cluster gave a relative pose "
                             "with enough well-triangulated points")
-        summary = write_result(reconstructions, new_output, images, mapper_options,
+        summary = write_result(reconstructions, new_output, images, extract_colors,
                                output_type.upper(), timer, start,
                                clusters=[asdict(report) for report in reports])
     print(format_summary(summary, str(output_path)))

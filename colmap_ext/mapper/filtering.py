@@ -139,17 +139,23 @@ def rotation_uncertainty(cam_from_world: pycolmap.Rigid3d, xyz: np.ndarray) -> f
     the rotation (radians, about its least determined axis, marginal over the
     translation) per radian of keypoint noise, the points taken as exact.
 
-    Gauss-Newton on the reprojection errors in normalized image units, with the
-    Jacobian of absolute_pose's refinement: covariance (J^T J)^-1. Few inliers in a
+    Gauss-Newton on the angular reprojection errors (radians; each point's offset on
+    the plane tangent to the unit sphere at its direction, as absolute_pose's
+    refinement), for points in any direction: covariance (J^T J)^-1. Few inliers in a
     narrow field of view, or on a shallow scene, let a rotation trade off against a
     translation (bas-relief): the uncertainty grows, and so does any bias of the points."""
     pose = cam_from_world.matrix()
     rotated = xyz @ pose[:, :3].T
     x = rotated + pose[:, 3]
-    inv_z = 1.0 / x[:, 2]
-    zeros = np.zeros(len(x))
-    dproject = np.stack([np.stack([inv_z, zeros, -x[:, 0] * inv_z ** 2], axis=1),
-                         np.stack([zeros, inv_z, -x[:, 1] * inv_z ** 2], axis=1)], axis=1)
+    distance = np.linalg.norm(x, axis=1)
+    direction = x / distance[:, None]
+    # d(tangent-plane offset)/dx at the point's own direction: B^T / |x|, with B an
+    # orthonormal basis of the plane orthogonal to the direction.
+    helper = np.where(np.abs(direction[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    tangent1 = np.cross(direction, helper)
+    tangent1 /= np.linalg.norm(tangent1, axis=1, keepdims=True)
+    tangent2 = np.cross(direction, tangent1)
+    dproject = np.stack([tangent1, tangent2], axis=1) / distance[:, None, None]
     skew = np.zeros((len(x), 3, 3))
     skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -rotated[:, 2], rotated[:, 1], -rotated[:, 0]
     skew -= skew.transpose(0, 2, 1)

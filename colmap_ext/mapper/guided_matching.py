@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-from colmap_ext.geometry import sampson_errors
+from colmap_ext.geometry import sampson_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 
@@ -18,7 +18,8 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
 
     Compatible: among the keypoint's `guided_num_neighbors` nearest descriptors, within
     `max_descriptor_distance`, and within the reprojection threshold of the epipolar
-    line (Sampson distance). The closest such descriptor wins; each keypoint of the
+    line (angular Sampson error, against the threshold in pixels times the mean angle a
+    pixel spans at the two keypoints). The closest such descriptor wins; each keypoint of the
     other image is used at most once. Returns (kps, other_kps, angles).
     """
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
@@ -28,10 +29,11 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     index, angles = index[kps], angles[kps]
     E = pycolmap.essential_matrix_from_pose(model.poses[other_id] *
                                             model.poses[image_id].inverse())
-    max_error = options.guided_matching.max_epipolar_error_px / model.focal(image_id)
-    x1 = np.repeat(model.normalized[image_id][kps], index.shape[1], axis=0)
-    errors = sampson_errors(E, x1, model.normalized[other_id][index.ravel()])
-    compatible = (errors.reshape(index.shape) <= max_error) & \
+    repeated = np.repeat(kps, index.shape[1])
+    max_errors = options.guided_matching.max_epipolar_error_px * pair_pixel_angles(
+        model, image_id, repeated, other_id, index.ravel())
+    errors = sampson_angles(E, model.rays[image_id][repeated], model.rays[other_id][index.ravel()])
+    compatible = (errors <= max_errors).reshape(index.shape) & \
         (angles <= options.guided_matching.max_descriptor_distance)
     first = np.argmax(compatible, axis=1)  # nearest compatible descriptor
     rows = np.flatnonzero(compatible.any(axis=1))
@@ -40,3 +42,10 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     _, unique = np.unique(other[order], return_index=True)
     keep = order[unique]
     return kps[keep], other[keep], angles[keep]
+
+
+def pair_pixel_angles(model: Model, id1: int, kps1: np.ndarray, id2: int,
+                      kps2: np.ndarray) -> np.ndarray:
+    """The mean angle (radians) a pixel spans at two corresponding keypoints: what a
+    pixel threshold on a pair's epipolar error is multiplied by."""
+    return 0.5 * (model.pixel_angles[id1][kps1] + model.pixel_angles[id2][kps2])

@@ -11,6 +11,7 @@ import pycolmap
 
 import solvers
 from colmap_ext.errors import UserError
+from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 from colmap_ext.mapper.two_view import Pair
@@ -32,11 +33,11 @@ def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
                      options: MapperOptions) -> TwoViewReconstruction | None:
     """Relative pose and triangulated consensus set of a pair, or None if it is weak."""
     id1, id2 = pair
-    focal = 0.5 * (model.focal(id1) + model.focal(id2))
     try:
         result = solvers.relative_pose(
             model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
-            max_error=options.two_view.max_error_px / focal,
+            max_error=options.two_view.max_error_px * pair_pixel_angles(
+                model, id1, matches[:, 0], id2, matches[:, 1]),
             min_num_inliers=options.initialization.min_num_inliers, seed=options.seed)
     except solvers.EstimationError:
         return None

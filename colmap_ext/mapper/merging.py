@@ -88,7 +88,8 @@ def cross_register(image_model: Model, image_id: int, points_model: Model,
     try:
         result = solvers.absolute_pose(
             image_model.rays[image_id][kps], points_model.xyz[point_ids],
-            max_error=options.registration.abs_pose_max_error_px / image_model.focal(image_id),
+            max_error=options.registration.abs_pose_max_error_px *
+            image_model.pixel_angles[image_id][kps],
             min_num_inliers=MIN_CROSS_INLIERS, seed=options.seed)
     except solvers.EstimationError:
         return None
@@ -118,7 +119,7 @@ def _descriptor_correspondences(image_model: Model, image_id: int, points_model:
     rows = np.arange(len(index))
     second = np.where(other.any(axis=1), angles[rows, np.argmax(other, axis=1)], np.pi)
     ok = (angles[:, 0] <= max_distance) & \
-        (angles[:, 0] < MAX_RATIO * second)
+        (angles[:, 0] < MAX_RATIO * second) & image_model.has_rays(image_id, rows)
     return np.flatnonzero(ok), nearest[ok, 0]
 
 

@@ -3,20 +3,31 @@
 One pycolmap.Reconstruction holds the model for the whole run (`Model.reconstruction`):
 every edit below is made on it in place, and bundle adjustment solves on it directly,
 so nothing is rebuilt for a solve. Beside it, for the vectorised geometry of every
-step, live arrays per image (normalized coordinates, unit rays, uint8 SIFT
-descriptors, and `point_of`, the point each keypoint observes or -1), the points'
-positions in a growable (P, 3) array indexed by point id, and a dict per point for
-its track (image id -> keypoint index). A point keeps at least two observations, as
-in COLMAP: deleting one of two deletes the point.
+step, live arrays per image (unit rays in any direction and the angle a pixel spans
+at each keypoint, see colmap_ext/cameras.py; uint8 SIFT descriptors; and `point_of`,
+the point each keypoint observes or -1), the points' positions in a growable (P, 3)
+array indexed by point id, and a dict per point for its track (image id -> keypoint
+index). A point keeps at least two observations, as in COLMAP: deleting one of two
+deletes the point.
 """
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 import pycolmap
 
+from colmap_ext.cameras import pixel_angles, rays
 from colmap_ext.database import DatabaseContents
 from colmap_ext.mapper.descriptors import NearestDescriptors
+
+logger = logging.getLogger(__name__)
+
+# Points this close (px) to their keypoint's ray that the camera model cannot project are
+# named in the log (Model._note_unprojectable): the mapper's thresholds, a few pixels,
+# would have kept them; points farther off are not observations worth a word.
+NOTED_UNPROJECTABLE_PX = 10.0
 
 
 class Model:
@@ -27,8 +38,11 @@ class Model:
         self.image_ids = sorted(image_ids if image_ids is not None else db.images)
         self.cameras = dict(db.cameras)  # this model's: bundle adjustment may refine them
         self.keypoints: dict[int, np.ndarray] = {}
-        self.normalized: dict[int, np.ndarray] = {}
         self.rays: dict[int, np.ndarray] = {}
+        # Radians per pixel at each keypoint: a pixel threshold times this is the angle the
+        # geometric tests compare with. NaN where the camera model gives the keypoint no
+        # ray (its ray is then a placeholder, and no test passes with it).
+        self.pixel_angles: dict[int, np.ndarray] = {}
         self.descriptors = db.descriptors  # read when asked: see database.DescriptorReader
         # point_of[image_id] is a view of one array over every image's keypoints, which
         # looks up the points of many images' keypoints at once (flat_offset + keypoint).
@@ -59,14 +73,15 @@ class Model:
         # Images whose observations changed since the mapper last looked (take_changed).
         self._changed: set[int] = set()
         self._next_point_id = 1  # COLMAP's point ids start at 1
+        self._noted_unprojectable = False
 
     # --- cameras ----------------------------------------------------------------
     def camera(self, image_id: int) -> pycolmap.Camera:
         return self.cameras[self.db.images[image_id].camera_id]
 
-    def focal(self, image_id: int) -> float:
-        camera = self.camera(image_id)
-        return 0.5 * (camera.focal_length_x + camera.focal_length_y)
+    def has_rays(self, image_id: int, kps: np.ndarray) -> np.ndarray:
+        """Whether the camera model gives each keypoint a ray (solvers take no others)."""
+        return np.isfinite(self.pixel_angles[image_id][kps])
 
     def set_camera(self, camera_id: int, camera: pycolmap.Camera) -> None:
         """New intrinsics for a camera, and the rays of its images from them."""
@@ -77,12 +92,13 @@ class Model:
                 self._compute_rays(image_id)
 
     def _compute_rays(self, image_id: int) -> None:
-        keypoints = self.keypoints[image_id]
-        xy = self.camera(image_id).cam_from_img(keypoints) if len(keypoints) \
-            else np.zeros((0, 2))
-        rays = np.hstack([xy, np.ones((len(xy), 1))])
-        self.normalized[image_id] = xy
-        self.rays[image_id] = rays / np.linalg.norm(rays, axis=1, keepdims=True)
+        camera, keypoints = self.camera(image_id), self.keypoints[image_id]
+        ray = rays(camera, keypoints)
+        angles = pixel_angles(camera, keypoints)
+        angles[~np.isfinite(ray).all(axis=1)] = np.nan
+        ray[~np.isfinite(angles)] = (0.0, 0.0, 1.0)
+        self.rays[image_id] = ray
+        self.pixel_angles[image_id] = angles
 
     def register(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
         self.set_pose(image_id, cam_from_world)
@@ -175,15 +191,37 @@ class Model:
 
     # --- geometry ---------------------------------------------------------------
     def reprojection_errors(self, image_id: int, kps: np.ndarray, xyz: np.ndarray) -> np.ndarray:
-        """Pixel distance between keypoints and the projections of `xyz`; inf behind."""
+        """Reprojection errors in pixels: the angle between each keypoint's ray and its
+        point `xyz`, over the angle a pixel spans there. inf where the point is 90 degrees
+        or more from the ray (behind it), or where the camera model cannot project the
+        point (a fisheye's directions at 90 degrees or more from its axis): bundle
+        adjustment could not take such an observation."""
         pose = self.poses[image_id].matrix()
         x_cam = xyz @ pose[:, :3].T + pose[:, 3]
-        errors = np.full(len(kps), np.inf)
-        front = x_cam[:, 2] > 1e-9
-        if front.any():
-            projected = self.camera(image_id).img_from_cam(x_cam[front], check_cheirality=False)
-            errors[front] = np.linalg.norm(projected - self.keypoints[image_id][kps[front]], axis=1)
+        ray = self.rays[image_id][kps]
+        along = np.einsum("ij,ij->i", x_cam, ray)
+        angles = np.arctan2(np.linalg.norm(np.cross(x_cam, ray), axis=1), along)
+        errors = angles / self.pixel_angles[image_id][kps]
+        errors[~(along > 0) | np.isnan(errors)] = np.inf
+        if len(x_cam):
+            # NaN behind a camera with an image plane (z <= 0), never for EQUIRECTANGULAR.
+            projected = self.camera(image_id).img_from_cam(x_cam)
+            outside = ~np.isfinite(projected).all(axis=1)
+            near = int(np.count_nonzero(outside & (errors <= NOTED_UNPROJECTABLE_PX)))
+            errors[outside] = np.inf
+            if near:
+                self._note_unprojectable(image_id, near)
         return errors
+
+    def _note_unprojectable(self, image_id: int, count: int) -> None:
+        """One log line per model: observations whose points the camera model cannot
+        project are left out (pycolmap's bundle adjustment could not take them)."""
+        if not self._noted_unprojectable:
+            self._noted_unprojectable = True
+            logger.warning("colmap-ext: %d observation(s) of image %d left out: camera model "
+                           "%s cannot project their points (beyond its field of view); "
+                           "later ones are left out without a word", count, image_id,
+                           self.camera(image_id).model.name)
 
     def centre(self, image_id: int) -> np.ndarray:
         return self.poses[image_id].inverse().translation

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+import logging
 import time
 from collections import defaultdict
 from pathlib import Path
@@ -32,6 +33,8 @@ from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
 from colmap_ext.timing import StageTimer
 
+
+logger = logging.getLogger(__name__)
 
 # Images tried per round before the mapper gives up on growing the model.
 MAX_CANDIDATES_PER_ROUND = 10
@@ -480,22 +483,23 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
         start = time.perf_counter()
         with timer("read database"):
             db = read_database(database_path)
-        check_images(db, image_path)
+        extract_colors = options.extract_colors and colours_readable(db, image_path)
         reconstructions = reconstruct(db, options, image_names, timer, progress, existing)
         if not reconstructions:
             raise UserError(f"no model could be reconstructed: {_why_none(timer, options)}")
-        write_result(reconstructions, new_output, image_path, options, output_type, timer, start)
+        write_result(reconstructions, new_output, image_path, extract_colors, output_type, timer,
+                     start)
     return dict(enumerate(reconstructions))
 
 
 def write_result(reconstructions: list[pycolmap.Reconstruction], output: Path,
-                 image_path: Path, options: MapperOptions, output_type: str,
+                 image_path: Path, extract_colors: bool, output_type: str,
                  timer: StageTimer, start: float, **details: object) -> dict:
-    """Write the models as output/0, output/1, ... (point colours from the images unless
-    options.extract_colors is off) and output/mapper_summary.json, the summary with
-    `details` added; `start`: the run's time.perf_counter(). Returns the summary."""
+    """Write the models as output/0, output/1, ... (with `extract_colors`, point colours
+    from the images) and output/mapper_summary.json, the summary with `details` added;
+    `start`: the run's time.perf_counter(). Returns the summary."""
     with timer("export"):
-        if options.extract_colors:
+        if extract_colors:
             for reconstruction in reconstructions:
                 reconstruction.extract_colors_for_all_images(str(image_path))
         write_models(reconstructions, output, output_type)
@@ -522,13 +526,17 @@ def _read_input_model(input_path: str | Path, output_path: str | Path) -> pycolm
     return read_model(input_path)
 
 
-def check_images(db: DatabaseContents, image_path: Path) -> None:
-    """The images must be there: the model's point colours are read from them."""
+def colours_readable(db: DatabaseContents, image_path: Path) -> bool:
+    """Whether every image of the database is a file under `image_path`, to read the
+    points' colours from. If not, the model is made all the same, as `colmap mapper`
+    makes it, and one warning says the colours are skipped."""
     missing = [image.name for image in db.images.values()
                if not (image_path / image.name).is_file()]
     if missing:
-        raise UserError(f"{len(missing)} images of the database are not under {image_path}: "
-                        f"{', '.join(missing[:3])}" + (" ..." if len(missing) > 3 else ""))
+        logger.warning("colmap-ext: %d images of the database are not under %s (%s): point "
+                       "colours not extracted", len(missing), image_path,
+                       ", ".join(missing[:3]) + (" ..." if len(missing) > 3 else ""))
+    return not missing
 
 
 def summarize(reconstructions: list[pycolmap.Reconstruction], timer: StageTimer,

@@ -10,7 +10,8 @@ import numpy as np
 import pycolmap
 
 import solvers
-from colmap_ext.geometry import sampson_errors
+from colmap_ext.geometry import sampson_angles
+from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 
@@ -74,12 +75,14 @@ def register_image(model: Model, image_id: int, kps: np.ndarray, point_ids: np.n
     registration = options.registration
     pairs = np.unique(np.stack([kps, point_ids], axis=1), axis=0) if len(kps) else \
         np.zeros((0, 2), np.int64)
+    pairs = pairs[model.has_rays(image_id, pairs[:, 0])]
     if len(pairs) < max(4, registration.abs_pose_min_num_inliers):
         return Outcome.TOO_FEW_INLIERS
     try:
         result = solvers.absolute_pose(
             model.rays[image_id][pairs[:, 0]], model.xyz[pairs[:, 1]],
-            max_error=registration.abs_pose_max_error_px / model.focal(image_id),
+            max_error=registration.abs_pose_max_error_px *
+            model.pixel_angles[image_id][pairs[:, 0]],
             min_num_inliers=registration.abs_pose_min_num_inliers, seed=options.seed)
     except solvers.EstimationError:
         return Outcome.TOO_FEW_INLIERS
@@ -112,14 +115,16 @@ def epipolar_support(model: Model, image_id: int, cam_from_world: pycolmap.Rigid
 
     Verified matches are true far more often than the pair's own relative pose is right
     (near-planar pairs), so they check a pose where 2D-3D inliers alone cannot."""
-    max_error = options.registration.abs_pose_max_error_px / model.focal(image_id)
+    max_error_px = options.registration.abs_pose_max_error_px
     consistent = total = 0
     for other_id, matches in graph.get(image_id, {}).items():
         if other_id not in model.poses:
             continue
         E = pycolmap.essential_matrix_from_pose(model.poses[other_id] * cam_from_world.inverse())
-        errors = sampson_errors(E, model.normalized[image_id][matches[:, 0]],
-                                model.normalized[other_id][matches[:, 1]])
-        consistent += int(np.count_nonzero(errors <= max_error))
+        errors = sampson_angles(E, model.rays[image_id][matches[:, 0]],
+                                model.rays[other_id][matches[:, 1]])
+        max_errors = max_error_px * pair_pixel_angles(model, image_id, matches[:, 0], other_id,
+                                                      matches[:, 1])
+        consistent += int(np.count_nonzero(errors <= max_errors))
         total += len(matches)
     return consistent / total if total else 1.0

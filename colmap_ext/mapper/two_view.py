@@ -9,6 +9,7 @@ import numpy as np
 from tqdm import tqdm
 
 import solvers
+from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 
@@ -17,19 +18,23 @@ Pair = tuple[int, int]
 
 def verified_matches(model: Model, options: MapperOptions,
                      progress: bool = True) -> dict[Pair, np.ndarray]:
-    """(id1, id2) -> (m, 2) inlier keypoint indices, for the model's images."""
+    """(id1, id2) -> (m, 2) inlier keypoint indices, for the model's images; matches
+    of keypoints that their camera model gives no ray are left out."""
     db = model.db
     wanted = set(model.image_ids)
     if db.verified_matches:
-        return {pair: m for pair, m in db.verified_matches.items()
-                if pair[0] in wanted and pair[1] in wanted
-                and len(m) >= options.two_view.min_num_inliers}
+        with_rays = {pair: with_rays_only(model, pair, m)
+                     for pair, m in db.verified_matches.items()
+                     if pair[0] in wanted and pair[1] in wanted}
+        return {pair: m for pair, m in with_rays.items()
+                if len(m) >= options.two_view.min_num_inliers}
     pairs = {pair: m for pair, m in db.raw_matches.items()
              if pair[0] in wanted and pair[1] in wanted}
     verified: dict[Pair, np.ndarray] = {}
     for (id1, id2), matches in tqdm(pairs.items(), desc="verifying pairs", unit="pair",
                                     disable=not progress, leave=False):
-        inliers = verify_pair(model, id1, id2, matches, options)
+        inliers = verify_pair(model, id1, id2, with_rays_only(model, (id1, id2), matches),
+                              options)
         if inliers is not None:
             verified[(id1, id2)] = inliers
     return verified
@@ -40,15 +45,21 @@ def verify_pair(model: Model, id1: int, id2: int, matches: np.ndarray,
     """The matches consistent with one calibrated relative pose, or None."""
     if len(matches) < max(5, options.two_view.min_num_inliers):
         return None
-    max_error = options.two_view.max_error_px / (0.5 * (model.focal(id1) + model.focal(id2)))
     try:
         result = solvers.relative_pose(
             model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
-            max_error=max_error, min_num_inliers=options.two_view.min_num_inliers,
+            max_error=options.two_view.max_error_px * pair_pixel_angles(
+                model, id1, matches[:, 0], id2, matches[:, 1]),
+            min_num_inliers=options.two_view.min_num_inliers,
             seed=options.seed)
     except solvers.EstimationError:
         return None
     return matches[result.inlier_mask]
+
+
+def with_rays_only(model: Model, pair: Pair, matches: np.ndarray) -> np.ndarray:
+    """The matches both of whose keypoints have rays (Model.has_rays)."""
+    return matches[model.has_rays(pair[0], matches[:, 0]) & model.has_rays(pair[1], matches[:, 1])]
 
 
 def pair_graph(matches: dict[Pair, np.ndarray]) -> dict[int, dict[int, np.ndarray]]:

@@ -1,5 +1,8 @@
 #include "absolute_pose.hpp"
 
+#include <limits>
+#include <utility>
+
 #include <opengv/absolute_pose/CentralAbsoluteAdapter.hpp>
 #include <opengv/absolute_pose/NoncentralAbsoluteAdapter.hpp>
 #include <opengv/absolute_pose/methods.hpp>
@@ -14,39 +17,76 @@ using opengv::points_t;
 using opengv::absolute_pose::CentralAbsoluteAdapter;
 using opengv::absolute_pose::NoncentralAbsoluteAdapter;
 
-// Least squares over the inliers' reprojection errors (see refinement.hpp) in normalized
-// image units, in the rotation (exp(w) R) and the translation (t + u) of rig_from_world:
-// 6 degrees of freedom. Observation i is made by camera camera_index[i] of the rig
-// (x_cam = R_c (R X + t) + t_c); a single camera is a rig of one identity camera.
+// The reprojection error of a point x (camera frame) seen along the unit ray f: the
+// point's position on the plane tangent to the unit sphere at f, B^T x / (f . x), with B
+// an orthonormal basis of that plane (two tangents of the angle between f and x). For
+// rays in any direction; a point at 90 degrees or more from its ray never fits.
+struct TangentFrame {
+  Eigen::Vector3d f;
+  Eigen::Matrix<double, 3, 2> B;
+};
+
+inline TangentFrame tangent_frame(const Eigen::Vector3d& f) {
+  TangentFrame frame{f, {}};
+  const Eigen::Vector3d a = f.unitOrthogonal();
+  frame.B << a, f.cross(a);
+  return frame;
+}
+
+// Depths along the ray at or below this never fit (the point is beside or behind it).
+constexpr double kMinDepth = 1e-9;
+
+// The point X of world observation i in its camera's frame: x_cam = R_c (R X + t) + t_c
+// for rig_from_world (R, t) and the observing camera's cam_from_rig (R_c, t_c).
+inline Eigen::Vector3d in_camera(const Pose& cam_from_rig, const Pose& rig_from_world,
+                                 const Eigen::Vector3d& X) {
+  return cam_from_rig.R * (rig_from_world.R * X + rig_from_world.t) + cam_from_rig.t;
+}
+
+// The squared tangent-plane reprojection error of x_cam, times weight^2; +inf beside or
+// behind the ray.
+inline double weighted_squared_error(const TangentFrame& frame, double weight,
+                                     const Eigen::Vector3d& x_cam) {
+  const double depth = frame.f.dot(x_cam);
+  if (depth <= kMinDepth) return std::numeric_limits<double>::infinity();
+  return weight * weight * (frame.B.transpose() * x_cam / depth).squaredNorm();
+}
+
+// Least squares over the inliers' tangent-plane reprojection errors (see refinement.hpp),
+// each over its threshold, in the rotation (exp(w) R) and the translation (t + u) of
+// rig_from_world: 6 degrees of freedom. Observation i is made by camera camera_index[i]
+// of the rig; a single camera is a rig of one identity camera.
 class ReprojectionRefinement {
  public:
   using Vec = Eigen::Matrix<double, 6, 1>;
   using Mat = Eigen::Matrix<double, 6, 6>;
 
-  ReprojectionRefinement(const points_t& points, const std::vector<Eigen::Vector2d>& xy,
-                         const std::vector<int>& camera_index, const Rig& rig,
-                         const std::vector<int>& inliers, Pose* rig_from_world)
-      : points_(points), xy_(xy), camera_index_(camera_index), rig_(rig), inliers_(inliers),
-        pose_(*rig_from_world) {}
+  ReprojectionRefinement(const points_t& points, const std::vector<TangentFrame>& frames,
+                         const std::vector<double>& weights, const std::vector<int>& camera_index,
+                         const Rig& rig, const std::vector<int>& inliers, Pose* rig_from_world)
+      : points_(points), frames_(frames), weights_(weights), camera_index_(camera_index),
+        rig_(rig), inliers_(inliers), pose_(*rig_from_world) {}
 
   double linearize(Mat* JtJ, Vec* Jtr) const {
     JtJ->setZero();
     Jtr->setZero();
     double cost = 0.0;
     for (int i : inliers_) {
+      const TangentFrame& frame = frames_[i];
       const Pose& cam_from_rig = rig_.cams_from_rig[camera_index_[i]];
       const Eigen::Vector3d RX = pose_.R * points_[i];
       const Eigen::Vector3d x = cam_from_rig.R * (RX + pose_.t) + cam_from_rig.t;
-      const double inv_z = 1.0 / x.z();
-      const Eigen::Vector2d r = x.head<2>() * inv_z - xy_[i];
-      Eigen::Matrix<double, 2, 3> dproject;  // d(x/z, y/z)/dx
-      dproject << inv_z, 0, -x.x() * inv_z * inv_z, 0, inv_z, -x.y() * inv_z * inv_z;
-      const Eigen::Matrix<double, 2, 3> dproject_rig = dproject * cam_from_rig.R;
+      const double inv_depth = 1.0 / frame.f.dot(x);
+      const Eigen::Vector2d r = frame.B.transpose() * x * inv_depth;
+      // d(B^T x / f.x)/dx = (B^T - r f^T) / f.x, and dx = R_c dx_rig
+      const Eigen::Matrix<double, 2, 3> dproject_rig =
+          (frame.B.transpose() - r * frame.f.transpose()) * inv_depth * cam_from_rig.R;
       Eigen::Matrix<double, 2, 6> J;
       J << dproject_rig * -skew(RX), dproject_rig;  // dx_rig/dw = -[R X]x, dx_rig/du = I
+      J *= weights_[i];
       *JtJ += J.transpose() * J;
-      *Jtr += J.transpose() * r;
-      cost += r.squaredNorm();
+      *Jtr += J.transpose() * (weights_[i] * r);
+      cost += weights_[i] * weights_[i] * r.squaredNorm();
     }
     return cost;
   }
@@ -56,8 +96,8 @@ class ReprojectionRefinement {
     double cost = 0.0;
     for (int i : inliers_) {
       const Pose& cam_from_rig = rig_.cams_from_rig[camera_index_[i]];
-      const Eigen::Vector3d x = cam_from_rig.R * (pose.R * points_[i] + pose.t) + cam_from_rig.t;
-      cost += (x.head<2>() / x.z() - xy_[i]).squaredNorm();
+      cost += weighted_squared_error(frames_[i], weights_[i],
+                                     in_camera(cam_from_rig, pose, points_[i]));
     }
     return cost;
   }
@@ -70,7 +110,8 @@ class ReprojectionRefinement {
   }
 
   const points_t& points_;
-  const std::vector<Eigen::Vector2d>& xy_;
+  const std::vector<TangentFrame>& frames_;
+  const std::vector<double>& weights_;  // 1 / each observation's threshold
   const std::vector<int>& camera_index_;
   const Rig& rig_;
   const std::vector<int>& inliers_;
@@ -79,23 +120,67 @@ class ReprojectionRefinement {
 
 // Whether cam_from_world sees world point X along unit ray f, to within kTolerance.
 // OpenGV's P3P and GP3P also return poses from the real parts of complex roots (a third
-// to half of their solutions): they fail this test on their own sample.
-bool sees_along_ray(const Pose& cam_from_world, const Eigen::Vector3d& X, const Eigen::Vector3d& f) {
+// to half of their solutions): they do not fit their own sample, or put points behind
+// the camera.
+bool sees_along_ray(const Pose& cam_from_world, const Eigen::Vector3d& X,
+                    const Eigen::Vector3d& f) {
   constexpr double kTolerance = 1e-4;
   const Eigen::Vector3d x = cam_from_world.R * X + cam_from_world.t;
   return (x.normalized() - f.normalized()).norm() < kTolerance;
 }
 
-class AbsolutePoseEstimator {
+// What the P3P and GP3P estimators share: each observation's tangent-plane reprojection
+// error through its rig camera, over its threshold, and its refinement. Subclasses add
+// minimal_solve.
+class RigReprojectionErrors {
  public:
   using Model = Pose;
   static constexpr int kSampleSize = 3;
 
-  AbsolutePoseEstimator(const bearingVectors_t& rays, const points_t& points, P3PMethod method)
-      : rays_(rays), points_(points), method_(method), xy_(normalized_coordinates(rays)),
-        camera_index_(rays.size(), 0) {}
+  RigReprojectionErrors(const bearingVectors_t& rays, std::vector<int> camera_index,
+                        const points_t& points, const Rig& rig,
+                        const std::vector<double>& max_errors)
+      : rays_(rays), camera_index_(std::move(camera_index)), points_(points), rig_(rig),
+        weights_(weights_from_thresholds(max_errors)) {
+    frames_.reserve(rays.size());
+    for (const auto& f : rays) frames_.push_back(tangent_frame(f));
+  }
 
   size_t num_data() const { return rays_.size(); }
+
+  // The reprojection error over the observation's threshold, squared (inlier below 1);
+  // a point beside or behind its ray never fits.
+  double squared_error(const Model& rig_from_world, size_t i) const {
+    const Pose& cam_from_rig = rig_.cams_from_rig[camera_index_[i]];
+    return weighted_squared_error(frames_[i], weights_[i],
+                                  in_camera(cam_from_rig, rig_from_world, points_[i]));
+  }
+
+  // Levenberg-Marquardt on the inliers' reprojection errors (6 degrees of freedom).
+  bool refine(const std::vector<int>& inliers, Model* rig_from_world) const {
+    ReprojectionRefinement problem(points_, frames_, weights_, camera_index_, rig_, inliers,
+                                   rig_from_world);
+    return levenberg_marquardt<6>(problem);
+  }
+
+ protected:
+  const bearingVectors_t& rays_;
+  std::vector<int> camera_index_;  // the rig camera of each observation
+  const points_t& points_;
+  const Rig& rig_;
+  std::vector<TangentFrame> frames_;
+  std::vector<double> weights_;  // 1 / each observation's threshold
+};
+
+// P3P (OpenGV) inside LO-MSAC: cam_from_world of a single camera, a rig of one identity
+// camera.
+class AbsolutePoseEstimator : public RigReprojectionErrors {
+ public:
+  AbsolutePoseEstimator(const bearingVectors_t& rays, const points_t& points,
+                        const std::vector<double>& max_errors, P3PMethod method)
+      : RigReprojectionErrors(rays, std::vector<int>(rays.size(), 0), points, kSingleCamera,
+                              max_errors),
+        method_(method) {}
 
   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const {
     bearingVectors_t s_rays;
@@ -107,43 +192,15 @@ class AbsolutePoseEstimator {
     for (const Pose& pose : p3p(s_rays, s_points, method_)) models->push_back(pose);
   }
 
-  // Reprojection error in normalized image units; points behind the camera never fit,
-  // nor do rays without normalized coordinates (NaN).
-  double squared_error(const Model& cam_from_world, size_t i) const {
-    const Eigen::Vector3d x = cam_from_world.R * points_[i] + cam_from_world.t;
-    if (x.z() <= kMinRayZ) return std::numeric_limits<double>::infinity();
-    return (x.head<2>() / x.z() - xy_[i]).squaredNorm();
-  }
-
-  // Levenberg-Marquardt on the inliers' reprojection errors (6 degrees of freedom).
-  bool refine(const std::vector<int>& inliers, Model* cam_from_world) const {
-    ReprojectionRefinement problem(points_, xy_, camera_index_, kSingleCamera, inliers,
-                                   cam_from_world);
-    return levenberg_marquardt<6>(problem);
-  }
-
  private:
   inline static const Rig kSingleCamera{{Pose()}};
-  const bearingVectors_t& rays_;
-  const points_t& points_;
   P3PMethod method_;
-  std::vector<Eigen::Vector2d> xy_;  // normalized image coordinates; NaN if none
-  std::vector<int> camera_index_;    // all 0: the one camera of kSingleCamera
 };
 
 // GP3P (OpenGV) inside LO-MSAC: rig_from_world from rays of several cameras of a rig.
-class GeneralizedAbsolutePoseEstimator {
+class GeneralizedAbsolutePoseEstimator : public RigReprojectionErrors {
  public:
-  using Model = Pose;
-  static constexpr int kSampleSize = 3;
-
-  GeneralizedAbsolutePoseEstimator(const bearingVectors_t& rays,
-                                   const std::vector<int>& camera_index,
-                                   const points_t& points, const Rig& rig)
-      : rays_(rays), camera_index_(camera_index), points_(points), rig_(rig),
-        xy_(normalized_coordinates(rays)) {}
-
-  size_t num_data() const { return rays_.size(); }
+  using RigReprojectionErrors::RigReprojectionErrors;
 
   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const {
     bearingVectors_t s_rays;
@@ -156,28 +213,6 @@ class GeneralizedAbsolutePoseEstimator {
     }
     for (const Pose& pose : gp3p(s_rays, s_cameras, s_points, rig_)) models->push_back(pose);
   }
-
-  // Reprojection error in the observing camera's normalized image units, as
-  // AbsolutePoseEstimator's.
-  double squared_error(const Model& rig_from_world, size_t i) const {
-    const Pose& cam_from_rig = rig_.cams_from_rig[camera_index_[i]];
-    const Eigen::Vector3d x =
-        cam_from_rig.R * (rig_from_world.R * points_[i] + rig_from_world.t) + cam_from_rig.t;
-    if (x.z() <= kMinRayZ) return std::numeric_limits<double>::infinity();
-    return (x.head<2>() / x.z() - xy_[i]).squaredNorm();
-  }
-
-  bool refine(const std::vector<int>& inliers, Model* rig_from_world) const {
-    ReprojectionRefinement problem(points_, xy_, camera_index_, rig_, inliers, rig_from_world);
-    return levenberg_marquardt<6>(problem);
-  }
-
- private:
-  const bearingVectors_t& rays_;
-  const std::vector<int>& camera_index_;
-  const points_t& points_;
-  const Rig& rig_;
-  std::vector<Eigen::Vector2d> xy_;
 };
 
 }  // namespace
@@ -216,16 +251,20 @@ std::vector<Pose> gp3p(const bearingVectors_t& rays, const std::vector<int>& cam
 }
 
 RansacResult<Pose> estimate_absolute_pose(const bearingVectors_t& rays, const points_t& points,
-                                          P3PMethod method, const RansacOptions& options) {
-  const AbsolutePoseEstimator estimator(rays, points, method);
+                                          const std::vector<double>& max_errors,
+                                          P3PMethod method, RansacOptions options) {
+  const AbsolutePoseEstimator estimator(rays, points, max_errors, method);
+  options.max_error = 1.0;  // errors arrive divided by their thresholds
   return ransac(estimator, options);
 }
 
 RansacResult<Pose> estimate_generalized_absolute_pose(const bearingVectors_t& rays,
                                                       const std::vector<int>& camera_index,
                                                       const points_t& points, const Rig& rig,
-                                                      const RansacOptions& options) {
-  const GeneralizedAbsolutePoseEstimator estimator(rays, camera_index, points, rig);
+                                                      const std::vector<double>& max_errors,
+                                                      RansacOptions options) {
+  const GeneralizedAbsolutePoseEstimator estimator(rays, camera_index, points, rig, max_errors);
+  options.max_error = 1.0;  // errors arrive divided by their thresholds
   return ransac(estimator, options);
 }
 

@@ -11,7 +11,6 @@
 #pragma once
 
 #include <Eigen/Core>
-#include <limits>
 #include <opengv/types.hpp>
 #include <utility>
 #include <vector>
@@ -64,19 +63,6 @@ inline Eigen::Matrix3d skew(const Eigen::Vector3d& v) {
 
 inline Eigen::Matrix3d essential_from_pose(const Pose& cam2_from_cam1) {
   return skew(cam2_from_cam1.t) * cam2_from_cam1.R;
-}
-
-// Rays with z <= kMinRayZ have no normalized image coordinates; they never count as inliers.
-constexpr double kMinRayZ = 1e-9;
-
-// Normalized image coordinates (x/z, y/z) of unit rays; NaN for rays without them.
-inline std::vector<Eigen::Vector2d> normalized_coordinates(const opengv::bearingVectors_t& rays) {
-  constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-  std::vector<Eigen::Vector2d> xy;
-  xy.reserve(rays.size());
-  for (const auto& f : rays)
-    xy.push_back(f.z() > kMinRayZ ? Eigen::Vector2d(f.head<2>() / f.z()) : Eigen::Vector2d(kNaN, kNaN));
-  return xy;
 }
 
 }  // namespace colmap_ext

@@ -62,10 +62,16 @@ P3PMethod p3p_method(const std::string& name) {
   throw std::invalid_argument("unknown P3P method '" + name + "' (kneip, gao)");
 }
 
-RansacOptions ransac_options(double max_error, int max_iterations, int min_iterations,
-                             double confidence, uint64_t seed) {
+std::vector<double> to_thresholds(const Eigen::Ref<const Eigen::VectorXd>& max_errors,
+                                  Eigen::Index num_data) {
+  if (max_errors.size() != num_data)
+    throw std::invalid_argument("max_errors must hold one threshold per correspondence");
+  return std::vector<double>(max_errors.data(), max_errors.data() + max_errors.size());
+}
+
+RansacOptions ransac_options(int max_iterations, int min_iterations, double confidence,
+                             uint64_t seed) {
   RansacOptions options;
-  options.max_error = max_error;
   options.max_iterations = max_iterations;
   options.min_iterations = min_iterations;
   options.confidence = confidence;
@@ -88,15 +94,18 @@ py::dict ransac_dict(const RansacResult<Pose>& r) {
 }
 
 py::dict relative_pose(const Eigen::Ref<const RowsX3>& rays1, const Eigen::Ref<const RowsX3>& rays2,
-                       const std::string& method, double max_error, int max_iterations,
+                       const std::string& method,
+                       const Eigen::Ref<const Eigen::VectorXd>& max_errors, int max_iterations,
                        int min_iterations, double confidence, uint64_t seed) {
   const FivePointMethod m = five_point_method(method);
   const opengv::bearingVectors_t f1 = to_vectors(rays1), f2 = to_vectors(rays2);
+  const std::vector<double> thresholds = to_thresholds(max_errors, rays1.rows());
   RelativePoseResult result;
   {
     py::gil_scoped_release release;
     result = estimate_relative_pose(
-        f1, f2, m, ransac_options(max_error, max_iterations, min_iterations, confidence, seed));
+        f1, f2, thresholds, m,
+        ransac_options(max_iterations, min_iterations, confidence, seed));
   }
   py::dict d = ransac_dict(result.ransac);
   d["E"] = result.E;
@@ -104,16 +113,18 @@ py::dict relative_pose(const Eigen::Ref<const RowsX3>& rays1, const Eigen::Ref<c
 }
 
 py::dict absolute_pose(const Eigen::Ref<const RowsX3>& rays, const Eigen::Ref<const RowsX3>& points,
-                       const std::string& method, double max_error, int max_iterations,
+                       const std::string& method,
+                       const Eigen::Ref<const Eigen::VectorXd>& max_errors, int max_iterations,
                        int min_iterations, double confidence, uint64_t seed) {
   const P3PMethod m = p3p_method(method);
   const opengv::bearingVectors_t f = to_vectors(rays);
   const opengv::points_t X = to_vectors(points);
+  const std::vector<double> thresholds = to_thresholds(max_errors, rays.rows());
   RansacResult<Pose> result;
   {
     py::gil_scoped_release release;
     result = estimate_absolute_pose(
-        f, X, m, ransac_options(max_error, max_iterations, min_iterations, confidence, seed));
+        f, X, thresholds, m, ransac_options(max_iterations, min_iterations, confidence, seed));
   }
   return ransac_dict(result);
 }
@@ -123,19 +134,21 @@ py::dict generalized_relative_pose(const Eigen::Ref<const RowsX3>& rays1,
                                    const Eigen::Ref<const RowsX3>& rays2,
                                    const Eigen::Ref<const Eigen::VectorXi>& camera_index2,
                                    const Eigen::Ref<const RowsX12>& cams_from_rig,
-                                   const std::string& method, double max_error,
+                                   const std::string& method,
+                                   const Eigen::Ref<const Eigen::VectorXd>& max_errors,
                                    int max_iterations, int min_iterations, double confidence,
                                    uint64_t seed) {
   const GeneralizedRelativeMethod m = generalized_relative_method(method);
   const opengv::bearingVectors_t f1 = to_vectors(rays1), f2 = to_vectors(rays2);
   const std::vector<int> c1 = to_indices(camera_index1), c2 = to_indices(camera_index2);
   const Rig rig(to_poses(cams_from_rig));
+  const std::vector<double> thresholds = to_thresholds(max_errors, rays1.rows());
   RansacResult<Pose> result;
   {
     py::gil_scoped_release release;
     result = estimate_generalized_relative_pose(
-        f1, c1, f2, c2, rig, m,
-        ransac_options(max_error, max_iterations, min_iterations, confidence, seed));
+        f1, c1, f2, c2, rig, thresholds, m,
+        ransac_options(max_iterations, min_iterations, confidence, seed));
   }
   return ransac_dict(result);
 }
@@ -144,18 +157,20 @@ py::dict generalized_absolute_pose(const Eigen::Ref<const RowsX3>& rays,
                                    const Eigen::Ref<const Eigen::VectorXi>& camera_index,
                                    const Eigen::Ref<const RowsX3>& points,
                                    const Eigen::Ref<const RowsX12>& cams_from_rig,
-                                   double max_error, int max_iterations, int min_iterations,
-                                   double confidence, uint64_t seed) {
+                                   const Eigen::Ref<const Eigen::VectorXd>& max_errors,
+                                   int max_iterations, int min_iterations, double confidence,
+                                   uint64_t seed) {
   const opengv::bearingVectors_t f = to_vectors(rays);
   const opengv::points_t X = to_vectors(points);
   const std::vector<int> cameras = to_indices(camera_index);
   const Rig rig(to_poses(cams_from_rig));
+  const std::vector<double> thresholds = to_thresholds(max_errors, rays.rows());
   RansacResult<Pose> result;
   {
     py::gil_scoped_release release;
     result = estimate_generalized_absolute_pose(
-        f, cameras, X, rig,
-        ransac_options(max_error, max_iterations, min_iterations, confidence, seed));
+        f, cameras, X, rig, thresholds,
+        ransac_options(max_iterations, min_iterations, confidence, seed));
   }
   return ransac_dict(result);
 }
@@ -242,19 +257,19 @@ PYBIND11_MODULE(_opengv, m) {
       "OpenGV minimal solvers and RANSAC in COLMAP's conventions (see geometry.hpp), and the "
       "mapper's largest-per-row kernel (largest.hpp).";
   m.def("relative_pose", &relative_pose, py::arg("rays1"), py::arg("rays2"), py::arg("method"),
-        py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
+        py::arg("max_errors"), py::arg("max_iterations"), py::arg("min_iterations"),
         py::arg("confidence"), py::arg("seed"));
   m.def("absolute_pose", &absolute_pose, py::arg("rays"), py::arg("points3D"), py::arg("method"),
-        py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
+        py::arg("max_errors"), py::arg("max_iterations"), py::arg("min_iterations"),
         py::arg("confidence"), py::arg("seed"));
   m.def("generalized_relative_pose", &generalized_relative_pose, py::arg("rays1"),
         py::arg("camera_index1"), py::arg("rays2"), py::arg("camera_index2"),
-        py::arg("cams_from_rig"), py::arg("method"), py::arg("max_error"),
+        py::arg("cams_from_rig"), py::arg("method"), py::arg("max_errors"),
         py::arg("max_iterations"), py::arg("min_iterations"), py::arg("confidence"),
         py::arg("seed"));
   m.def("generalized_absolute_pose", &generalized_absolute_pose, py::arg("rays"),
         py::arg("camera_index"), py::arg("points3D"), py::arg("cams_from_rig"),
-        py::arg("max_error"), py::arg("max_iterations"), py::arg("min_iterations"),
+        py::arg("max_errors"), py::arg("max_iterations"), py::arg("min_iterations"),
         py::arg("confidence"), py::arg("seed"));
   m.def("five_point", &five_point_py, py::arg("rays1"), py::arg("rays2"), py::arg("method"));
   m.def("p3p", &p3p_py, py::arg("rays"), py::arg("points3D"), py::arg("method"));

@@ -31,6 +31,14 @@ struct RansacOptions {
   uint64_t seed = 0;
 };
 
+// 1 / each correspondence's threshold: estimators with one threshold per correspondence
+// score errors times their weight and run with max_error 1.
+inline std::vector<double> weights_from_thresholds(const std::vector<double>& max_errors) {
+  std::vector<double> weights(max_errors.size());
+  for (size_t i = 0; i < max_errors.size(); ++i) weights[i] = 1.0 / max_errors[i];
+  return weights;
+}
+
 template <typename Estimator, typename = void>
 struct draws_own_samples : std::false_type {};
 

@@ -99,21 +99,32 @@ bool in_front(const Pose& cam2_from_cam1, const Eigen::Vector3d& f1, const Eigen
   return det > 0 && gg * fc - fg * gc > 0 && fg * fc - ff * gc > 0;
 }
 
-// The Sampson error of one pair is c / sqrt(d): c = x2^T E x1 and d = |(E x1)_xy|^2 +
-// |(E^T x2)_xy|^2, for normalized image points x1, x2 (z = 1).
+// The angular Sampson error of a pair of unit rays is c / sqrt(d): c = f2^T E f1, and
+// d = |g1|^2 + |g2|^2 with g1 = E^T f2 - c f1 and g2 = E f1 - c f2 the gradients of c
+// within the tangent planes of f1 and f2. To first order, the angle (radians) by which the
+// rays must turn to meet; it holds for rays in any direction, behind the image plane too.
 struct SampsonTerms {
-  Eigen::Vector3d Ex1, Etx2;
+  Eigen::Vector3d g1, g2;
   double c, d;
 };
 
-inline SampsonTerms sampson_terms(const Eigen::Matrix3d& E, const Eigen::Vector2d& x1,
-                                  const Eigen::Vector2d& x2) {
+inline SampsonTerms sampson_terms(const Eigen::Matrix3d& E, const Eigen::Vector3d& f1,
+                                  const Eigen::Vector3d& f2) {
   SampsonTerms s;
-  s.Ex1 = E.leftCols<2>() * x1 + E.col(2);
-  s.Etx2 = E.topRows<2>().transpose() * x2 + E.row(2).transpose();
-  s.c = x2.dot(s.Ex1.head<2>()) + s.Ex1.z();
-  s.d = s.Ex1.head<2>().squaredNorm() + s.Etx2.head<2>().squaredNorm();
+  s.g2 = E * f1;
+  s.g1 = E.transpose() * f2;
+  s.c = f2.dot(s.g2);
+  s.g2 -= s.c * f2;
+  s.g1 -= s.c * f1;
+  s.d = s.g1.squaredNorm() + s.g2.squaredNorm();
   return s;
+}
+
+// The angular Sampson error over its threshold, squared (inlier below 1).
+inline double weighted_squared_sampson(const Eigen::Matrix3d& E, const Eigen::Vector3d& f1,
+                                       const Eigen::Vector3d& f2, double weight) {
+  const SampsonTerms s = sampson_terms(E, f1, f2);
+  return weight * weight * s.c * s.c / s.d;
 }
 
 // E = [t]x R has two rotations, Ra and Rb, and the unit translation t up to its sign.
@@ -133,32 +144,30 @@ EssentialDecomposition decompose(const Eigen::Matrix3d& E) {
   return {U * W * V.transpose(), U * W.transpose() * V.transpose(), U.col(2).normalized()};
 }
 
-// Least squares over the inliers' Sampson errors (see refinement.hpp), in the rotation
-// (exp(w) R) and the direction of translation (t + B u, renormalized, with B a basis
-// of the plane orthogonal to t): 5 degrees of freedom.
-// The Sampson error r of one pair and its gradient G = dr/dE over E's entries.
-double sampson_residual(const Eigen::Matrix3d& E, const Eigen::Vector2d& x1,
-                        const Eigen::Vector2d& x2, Eigen::Matrix3d* G) {
-  const SampsonTerms s = sampson_terms(E, x1, x2);
+// The angular Sampson error r of one pair and its gradient G = dr/dE over E's entries.
+double sampson_residual(const Eigen::Matrix3d& E, const Eigen::Vector3d& f1,
+                        const Eigen::Vector3d& f2, Eigen::Matrix3d* G) {
+  const SampsonTerms s = sampson_terms(E, f1, f2);
   const double inv_sqrt_d = 1.0 / std::sqrt(s.d);
   const double r = s.c * inv_sqrt_d;
-  // dr/dE = x2 x1^T / sqrt(d) - (r / d) (dd/dE) / 2
-  const Eigen::Vector3d h1 = x1.homogeneous(), h2 = x2.homogeneous();
-  *G = inv_sqrt_d * h2 * h1.transpose();
+  // dr/dE = f2 f1^T / sqrt(d) - (r / d) (g2 f1^T + f2 g1^T)
   const double k = r * inv_sqrt_d * inv_sqrt_d;
-  G->topRows<2>() -= k * s.Ex1.head<2>() * h1.transpose();
-  G->leftCols<2>() -= k * h2 * s.Etx2.head<2>().transpose();
+  *G = inv_sqrt_d * f2 * f1.transpose() - k * (s.g2 * f1.transpose() + f2 * s.g1.transpose());
   return r;
 }
 
+// Least squares over the inliers' angular Sampson errors, each over its threshold (see
+// refinement.hpp), in the rotation (exp(w) R) and the direction of translation (t + B u,
+// renormalized, with B a basis of the plane orthogonal to t): 5 degrees of freedom.
 class SampsonRefinement {
  public:
   using Vec = Eigen::Matrix<double, 5, 1>;
   using Mat = Eigen::Matrix<double, 5, 5>;
 
-  SampsonRefinement(const std::vector<Eigen::Vector2d>& x1, const std::vector<Eigen::Vector2d>& x2,
-                    const std::vector<int>& inliers, Pose* cam2_from_cam1)
-      : x1_(x1), x2_(x2), inliers_(inliers), pose_(*cam2_from_cam1) {
+  SampsonRefinement(const bearingVectors_t& rays1, const bearingVectors_t& rays2,
+                    const std::vector<double>& weights, const std::vector<int>& inliers,
+                    Pose* cam2_from_cam1)
+      : rays1_(rays1), rays2_(rays2), weights_(weights), inliers_(inliers), pose_(*cam2_from_cam1) {
     update_tangent();
   }
 
@@ -172,9 +181,9 @@ class SampsonRefinement {
     double cost = 0.0;
     for (int i : inliers_) {
       Eigen::Matrix3d G;
-      const double r = sampson_residual(E, x1_[i], x2_[i], &G);
+      const double r = weights_[i] * sampson_residual(E, rays1_[i], rays2_[i], &G);
       Vec J;
-      for (int p = 0; p < 5; ++p) J[p] = G.cwiseProduct(dE[p]).sum();
+      for (int p = 0; p < 5; ++p) J[p] = weights_[i] * G.cwiseProduct(dE[p]).sum();
       *JtJ += J * J.transpose();
       *Jtr += r * J;
       cost += r * r;
@@ -185,10 +194,7 @@ class SampsonRefinement {
   double cost(const Vec& delta) const {
     const Eigen::Matrix3d E = essential_from_pose(moved(delta));
     double cost = 0.0;
-    for (int i : inliers_) {
-      const SampsonTerms s = sampson_terms(E, x1_[i], x2_[i]);
-      cost += s.c * s.c / s.d;
-    }
+    for (int i : inliers_) cost += weighted_squared_sampson(E, rays1_[i], rays2_[i], weights_[i]);
     return cost;
   }
 
@@ -207,8 +213,9 @@ class SampsonRefinement {
     tangent_ << a, pose_.t.cross(a);
   }
 
-  const std::vector<Eigen::Vector2d>& x1_;
-  const std::vector<Eigen::Vector2d>& x2_;
+  const bearingVectors_t& rays1_;
+  const bearingVectors_t& rays2_;
+  const std::vector<double>& weights_;  // 1 / each pair's threshold
   const std::vector<int>& inliers_;
   Pose& pose_;
   Eigen::Matrix<double, 3, 2> tangent_;
@@ -227,15 +234,9 @@ class RelativePoseEstimator {
   static constexpr int kSampleSize = 5;
 
   RelativePoseEstimator(const bearingVectors_t& rays1, const bearingVectors_t& rays2,
-                        FivePointMethod method)
-      : rays1_(rays1), rays2_(rays2), method_(method), x1_(rays1.size()), x2_(rays2.size()) {
-    constexpr double kNaN = std::numeric_limits<double>::quiet_NaN();
-    for (size_t i = 0; i < rays1.size(); ++i) {
-      const bool valid = rays1[i].z() > kMinRayZ && rays2[i].z() > kMinRayZ;
-      x1_[i] = valid ? Eigen::Vector2d(rays1[i].head<2>() / rays1[i].z()) : Eigen::Vector2d(kNaN, kNaN);
-      x2_[i] = valid ? Eigen::Vector2d(rays2[i].head<2>() / rays2[i].z()) : Eigen::Vector2d(kNaN, kNaN);
-    }
-  }
+                        const std::vector<double>& max_errors, FivePointMethod method)
+      : rays1_(rays1), rays2_(rays2), method_(method),
+        weights_(weights_from_thresholds(max_errors)) {}
 
   size_t num_data() const { return rays1_.size(); }
 
@@ -250,11 +251,9 @@ class RelativePoseEstimator {
     }
   }
 
-  // Sampson error: first-order geometric error in normalized image units. NaN (never an
-  // inlier) for rays without normalized coordinates.
+  // The angular Sampson error over the pair's threshold, squared (inlier below 1).
   double squared_error(const Model& model, size_t i) const {
-    const SampsonTerms s = sampson_terms(model.E, x1_[i], x2_[i]);
-    return s.c * s.c / s.d;
+    return weighted_squared_sampson(model.E, rays1_[i], rays2_[i], weights_[i]);
   }
 
   // Levenberg-Marquardt on the inliers' Sampson errors (5 degrees of freedom).
@@ -263,7 +262,7 @@ class RelativePoseEstimator {
       model->pose = decompose_essential(model->E, rays1_, rays2_, inliers);
       model->has_pose = true;
     }
-    SampsonRefinement problem(x1_, x2_, inliers, &model->pose);
+    SampsonRefinement problem(rays1_, rays2_, weights_, inliers, &model->pose);
     if (!levenberg_marquardt<5>(problem)) return false;
     model->E = essential_from_pose(model->pose);
     return true;
@@ -273,7 +272,7 @@ class RelativePoseEstimator {
   const bearingVectors_t& rays1_;
   const bearingVectors_t& rays2_;
   FivePointMethod method_;
-  std::vector<Eigen::Vector2d> x1_, x2_;  // normalized image points (x/z, y/z); NaN if none
+  std::vector<double> weights_;  // 1 / each pair's threshold
 };
 
 // cam2_from_cam1 for camera c1 of a rig in frame 1 and camera c2 in frame 2.
@@ -292,19 +291,20 @@ std::vector<Eigen::Matrix3d> pair_essentials(const Rig& rig, const Pose& rig2_fr
   return essentials;
 }
 
-// Least squares over the inliers' Sampson errors, each in its camera pair (see
-// refinement.hpp), in the rotation (exp(w) R) and the translation (t + u) of
-// rig2_from_rig1: 6 degrees of freedom, the rig's baseline fixing the scale.
+// Least squares over the inliers' angular Sampson errors, each in its camera pair and
+// over its threshold (see refinement.hpp), in the rotation (exp(w) R) and the translation
+// (t + u) of rig2_from_rig1: 6 degrees of freedom, the rig's baseline fixing the scale.
 class GeneralizedSampsonRefinement {
  public:
   using Vec = Eigen::Matrix<double, 6, 1>;
   using Mat = Eigen::Matrix<double, 6, 6>;
 
-  GeneralizedSampsonRefinement(const std::vector<Eigen::Vector2d>& x1,
-                               const std::vector<Eigen::Vector2d>& x2,
-                               const std::vector<int>& pair, const Rig& rig,
-                               const std::vector<int>& inliers, Pose* rig2_from_rig1)
-      : x1_(x1), x2_(x2), pair_(pair), rig_(rig), inliers_(inliers), pose_(*rig2_from_rig1) {}
+  GeneralizedSampsonRefinement(const bearingVectors_t& rays1, const bearingVectors_t& rays2,
+                               const std::vector<double>& weights, const std::vector<int>& pair,
+                               const Rig& rig, const std::vector<int>& inliers,
+                               Pose* rig2_from_rig1)
+      : rays1_(rays1), rays2_(rays2), weights_(weights), pair_(pair), rig_(rig),
+        inliers_(inliers), pose_(*rig2_from_rig1) {}
 
   double linearize(Mat* JtJ, Vec* Jtr) const {
     // Per camera pair: E = [t_p]x R_p with R_p = R2 R R1^T and t_p = R2 (t + R o1) + t2
@@ -334,9 +334,9 @@ class GeneralizedSampsonRefinement {
     double cost = 0.0;
     for (int i : inliers_) {
       Eigen::Matrix3d G;
-      const double r = sampson_residual(E[pair_[i]], x1_[i], x2_[i], &G);
+      const double r = weights_[i] * sampson_residual(E[pair_[i]], rays1_[i], rays2_[i], &G);
       Vec J;
-      for (int p = 0; p < 6; ++p) J[p] = G.cwiseProduct(dE[pair_[i]][p]).sum();
+      for (int p = 0; p < 6; ++p) J[p] = weights_[i] * G.cwiseProduct(dE[pair_[i]][p]).sum();
       *JtJ += J * J.transpose();
       *Jtr += r * J;
       cost += r * r;
@@ -347,10 +347,8 @@ class GeneralizedSampsonRefinement {
   double cost(const Vec& delta) const {
     const std::vector<Eigen::Matrix3d> E = pair_essentials(rig_, moved(delta));
     double cost = 0.0;
-    for (int i : inliers_) {
-      const SampsonTerms s = sampson_terms(E[pair_[i]], x1_[i], x2_[i]);
-      cost += s.c * s.c / s.d;
-    }
+    for (int i : inliers_)
+      cost += weighted_squared_sampson(E[pair_[i]], rays1_[i], rays2_[i], weights_[i]);
     return cost;
   }
 
@@ -361,8 +359,9 @@ class GeneralizedSampsonRefinement {
     return {rotate_by(delta.head<3>(), pose_.R), pose_.t + delta.tail<3>()};
   }
 
-  const std::vector<Eigen::Vector2d>& x1_;
-  const std::vector<Eigen::Vector2d>& x2_;
+  const bearingVectors_t& rays1_;
+  const bearingVectors_t& rays2_;
+  const std::vector<double>& weights_;  // 1 / each pair's threshold
   const std::vector<int>& pair_;
   const Rig& rig_;
   const std::vector<int>& inliers_;
@@ -385,10 +384,10 @@ class GeneralizedRelativePoseEstimator {
 
   GeneralizedRelativePoseEstimator(const bearingVectors_t& rays1, const std::vector<int>& cameras1,
                                    const bearingVectors_t& rays2, const std::vector<int>& cameras2,
-                                   const Rig& rig)
+                                   const Rig& rig, const std::vector<double>& max_errors)
       : rays1_(rays1), cameras1_(cameras1), rays2_(rays2), cameras2_(cameras2), rig_(rig),
         adapter_(rays1, rays2, cameras1, cameras2, rig.offsets, rig.rotations),
-        x1_(normalized_coordinates(rays1)), x2_(normalized_coordinates(rays2)) {
+        weights_(weights_from_thresholds(max_errors)) {
     members_of_pair_.resize(rig.num_cameras() * rig.num_cameras());
     for (size_t i = 0; i < rays1.size(); ++i) {
       pair_.push_back(cameras1[i] * rig.num_cameras() + cameras2[i]);
@@ -453,13 +452,14 @@ class GeneralizedRelativePoseEstimator {
     }
   }
 
+  // The angular Sampson error in the pair's camera pair over its threshold, squared.
   double squared_error(const Model& model, size_t i) const {
-    const SampsonTerms s = sampson_terms(model.essentials[pair_[i]], x1_[i], x2_[i]);
-    return s.c * s.c / s.d;
+    return weighted_squared_sampson(model.essentials[pair_[i]], rays1_[i], rays2_[i], weights_[i]);
   }
 
   bool refine(const std::vector<int>& inliers, Model* model) const {
-    GeneralizedSampsonRefinement problem(x1_, x2_, pair_, rig_, inliers, &model->pose);
+    GeneralizedSampsonRefinement problem(rays1_, rays2_, weights_, pair_, rig_, inliers,
+                                         &model->pose);
     if (!levenberg_marquardt<6>(problem)) return false;
     model->essentials = pair_essentials(rig_, model->pose);
     return true;
@@ -530,7 +530,7 @@ class GeneralizedRelativePoseEstimator {
   const std::vector<int>& cameras2_;
   const Rig& rig_;
   const NoncentralRelativeAdapter adapter_;
-  std::vector<Eigen::Vector2d> x1_, x2_;  // normalized image points; NaN if none
+  std::vector<double> weights_;           // 1 / each pair's threshold
   std::vector<int> pair_;                 // camera pair of each correspondence (pair_essentials)
   std::vector<std::vector<int>> members_of_pair_;  // correspondences by camera pair
   opengv::translations_t origin1_, origin2_;     // camera centres in the rig frames
@@ -542,8 +542,11 @@ RansacResult<Pose> run_generalized_relative(const bearingVectors_t& rays1,
                                             const std::vector<int>& cameras1,
                                             const bearingVectors_t& rays2,
                                             const std::vector<int>& cameras2, const Rig& rig,
-                                            const RansacOptions& options) {
-  const GeneralizedRelativePoseEstimator<kMethod> estimator(rays1, cameras1, rays2, cameras2, rig);
+                                            const std::vector<double>& max_errors,
+                                            RansacOptions options) {
+  const GeneralizedRelativePoseEstimator<kMethod> estimator(rays1, cameras1, rays2, cameras2, rig,
+                                                            max_errors);
+  options.max_error = 1.0;  // errors arrive divided by their thresholds
   RansacResult<GeneralizedRelativeModel> found = ransac(estimator, options);
   RansacResult<Pose> result;
   result.success = found.success;
@@ -584,9 +587,11 @@ Pose decompose_essential(const Eigen::Matrix3d& E, const bearingVectors_t& rays1
 }
 
 RelativePoseResult estimate_relative_pose(const bearingVectors_t& rays1,
-                                          const bearingVectors_t& rays2, FivePointMethod method,
-                                          const RansacOptions& options) {
-  const RelativePoseEstimator estimator(rays1, rays2, method);
+                                          const bearingVectors_t& rays2,
+                                          const std::vector<double>& max_errors,
+                                          FivePointMethod method, RansacOptions options) {
+  const RelativePoseEstimator estimator(rays1, rays2, max_errors, method);
+  options.max_error = 1.0;  // errors arrive divided by their thresholds
   RansacResult<RelativeModel> found = ransac(estimator, options);
   RelativePoseResult result;
   result.ransac.success = found.success;
@@ -611,18 +616,19 @@ RansacResult<Pose> estimate_generalized_relative_pose(const bearingVectors_t& ra
                                                       const bearingVectors_t& rays2,
                                                       const std::vector<int>& cameras2,
                                                       const Rig& rig,
+                                                      const std::vector<double>& max_errors,
                                                       GeneralizedRelativeMethod method,
                                                       const RansacOptions& options) {
   switch (method) {
     case GeneralizedRelativeMethod::kSixPoint:
       return run_generalized_relative<GeneralizedRelativeMethod::kSixPoint>(
-          rays1, cameras1, rays2, cameras2, rig, options);
+          rays1, cameras1, rays2, cameras2, rig, max_errors, options);
     case GeneralizedRelativeMethod::kFivePlusOne:
       return run_generalized_relative<GeneralizedRelativeMethod::kFivePlusOne>(
-          rays1, cameras1, rays2, cameras2, rig, options);
+          rays1, cameras1, rays2, cameras2, rig, max_errors, options);
     default:
       return run_generalized_relative<GeneralizedRelativeMethod::kSeventeenPoint>(
-          rays1, cameras1, rays2, cameras2, rig, options);
+          rays1, cameras1, rays2, cameras2, rig, max_errors, options);
   }
 }
 

@@ -26,11 +26,12 @@ struct RelativePoseResult {
   Eigen::Matrix3d E = Eigen::Matrix3d::Zero();
 };
 
-// Robust cam2_from_cam1 from unit rays; max_error is the Sampson error in normalized
-// image units.
+// Robust cam2_from_cam1 from unit rays in any direction; max_errors[i] bounds pair i's
+// angular Sampson error (radians). options.max_error is not read.
 RelativePoseResult estimate_relative_pose(const opengv::bearingVectors_t& rays1,
                                           const opengv::bearingVectors_t& rays2,
-                                          FivePointMethod method, const RansacOptions& options);
+                                          const std::vector<double>& max_errors,
+                                          FivePointMethod method, RansacOptions options);
 
 // kSixPoint: OpenGV's 6-point solver (Stewenius). kFivePlusOne: OpenGV's 5-point solver
 // on five pairs of one camera pair, the scale from a sixth of another (samples drawn so).
@@ -38,14 +39,15 @@ RelativePoseResult estimate_relative_pose(const opengv::bearingVectors_t& rays1,
 enum class GeneralizedRelativeMethod { kSixPoint, kFivePlusOne, kSeventeenPoint };
 
 // Robust rig2_from_rig1 between two frames of one rig (metric translation: the rig's
-// baseline fixes the scale) from ray pairs, ray i of camera cameras1[i] in frame 1 and
-// of cameras2[i] in frame 2; max_error is the Sampson error of each pair in its cameras'
-// normalized image units.
+// baseline fixes the scale) from ray pairs in any direction, ray i of camera cameras1[i]
+// in frame 1 and of cameras2[i] in frame 2; max_errors[i] bounds pair i's angular Sampson
+// error in its camera pair (radians). options.max_error is not read.
 RansacResult<Pose> estimate_generalized_relative_pose(const opengv::bearingVectors_t& rays1,
                                                       const std::vector<int>& cameras1,
                                                       const opengv::bearingVectors_t& rays2,
                                                       const std::vector<int>& cameras2,
                                                       const Rig& rig,
+                                                      const std::vector<double>& max_errors,
                                                       GeneralizedRelativeMethod method,
                                                       const RansacOptions& options);
 

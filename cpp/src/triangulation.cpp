@@ -39,7 +39,7 @@ TriangulationResult triangulate_tracks(const std::vector<Pose>& cams_from_world,
       const Observation& obs = observations[k];
       const Pose& pose = cams_from_world[obs.view];
       const Eigen::Vector3d x_cam = pose.R * X + pose.t;
-      in_front &= x_cam.dot(obs.ray) > 0 && x_cam.z() > kMinRayZ;
+      in_front &= x_cam.dot(obs.ray) > 0;  // along its ray, whatever the ray's direction
       const Eigen::Vector3d centre = -pose.R.transpose() * pose.t;
       directions.push_back((X - centre).normalized());
     }
