@@ -1387,7 +1387,7 @@ def _reconstruct_over_a_workspace(env) -> list[str]:
 # Issue 33, defect 3: an interrupt replaced WS/database.db with a partial one while the
 # old sparse/0 stayed. Now each moment leaves the earlier workspace whole.
 @case("reconstruct_ctrl_c_while_extracting", "interrupted by SIGINT", code=130,
-      command="reconstruct", run=interrupted("", delay=2.5))
+      command="reconstruct", run=interrupted("extract", delay=0.0))
 def _(env):
     return _reconstruct_over_a_workspace(env)
 
