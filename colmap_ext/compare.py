@@ -46,7 +46,7 @@ from tqdm import tqdm
 
 from colmap_ext.colmap_mappers import (colmap_global_options, colmap_incremental_options,
                                        fix_intrinsics_in_database)
-from colmap_ext.database import check_database_file, copy_database
+from colmap_ext.database import check_database_file, colmap_tables, copy_database
 from colmap_ext.errors import UserError
 from colmap_ext.features import quiet_colmap_logs
 from colmap_ext.evaluate import (AUC_KEY, AUC_THRESHOLDS_DEG, MEASURES, evaluate, format_auc,
@@ -246,11 +246,7 @@ def read_image_names(copy: Path, database_path: Path) -> list[str]:
     """The image names of a COLMAP database (a private copy of `database_path`)."""
     try:
         with closing(sqlite3.connect(copy)) as conn:
-            tables = {row[0] for row in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-            missing = {"cameras", "images", "keypoints", "descriptors", "matches"} - tables
-            if missing:
-                raise UserError(f"not a COLMAP database (no table {', '.join(sorted(missing))}): "
-                                f"{database_path}")
+            colmap_tables(conn, database_path)
             return [row[0] for row in conn.execute("SELECT name FROM images")]
     except sqlite3.Error as exc:
         raise UserError(f"cannot read database {database_path}: {exc}") from None

@@ -142,17 +142,23 @@ _GEOMETRY_BLOB_BYTES = {"F": 72, "E": 72, "H": 72, "qvec": 32, "tvec": 24}
 _KEYPOINT_COLUMNS = (2, 4, 6)
 
 
+def colmap_tables(conn: sqlite3.Connection, path: Path) -> set[str]:
+    """The tables of the open database `conn` (a copy of `path`); a UserError unless
+    COLMAP's are among them."""
+    tables = {row[0] for row in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
+    missing = {"cameras", "images", "keypoints", "descriptors", "matches"} - tables
+    if missing:
+        raise UserError(f"not a COLMAP database (no table {', '.join(sorted(missing))}): {path}")
+    return tables
+
+
 def _check_tables(copy: Path, path: Path) -> None:
     """The COLMAP tables are there, every camera is one pycolmap can read, and every
     keypoint and match blob holds what its rows and columns say (read as raw bytes before
     pycolmap, which would read past a short blob or reinterpret a long one)."""
     try:
         with closing(sqlite3.connect(copy)) as conn:
-            tables = {row[0] for row in conn.execute("SELECT name FROM sqlite_master WHERE type='table'")}
-            missing = {"cameras", "images", "keypoints", "descriptors", "matches"} - tables
-            if missing:
-                raise UserError(f"not a COLMAP database (no table {', '.join(sorted(missing))}): "
-                                f"{path}")
+            tables = colmap_tables(conn, path)
             for row in conn.execute("SELECT camera_id, model, width, height, params FROM cameras"):
                 _check_camera(*row, path)
             _check_blobs(conn, path, "two_view_geometries" in tables)
