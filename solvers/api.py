@@ -21,37 +21,40 @@ class EstimationError(RuntimeError):
     """RANSAC found no model that enough correspondences agree with (degenerate data)."""
 
 
+@dataclass(frozen=True, kw_only=True)
+class RansacStatistics:
+    """What every estimate reports besides its model: the correspondences it fits."""
+
+    inlier_mask: np.ndarray  # (N,) bool
+    num_inliers: int
+    num_iterations: int
+
+    @classmethod
+    def fields_from(cls, out: dict) -> dict:
+        """These fields from the compiled module's output."""
+        return {"inlier_mask": out["inlier_mask"], "num_inliers": out["num_inliers"],
+                "num_iterations": out["num_iterations"]}
+
+
 @dataclass(frozen=True)
-class RelativePoseResult:
+class RelativePoseResult(RansacStatistics):
     cam2_from_cam1: pycolmap.Rigid3d  # unit translation
     E: np.ndarray  # (3, 3), x2^T E x1 = 0
-    inlier_mask: np.ndarray  # (N,) bool
-    num_inliers: int
-    num_iterations: int
 
 
 @dataclass(frozen=True)
-class AbsolutePoseResult:
+class AbsolutePoseResult(RansacStatistics):
     cam_from_world: pycolmap.Rigid3d
-    inlier_mask: np.ndarray  # (N,) bool
-    num_inliers: int
-    num_iterations: int
 
 
 @dataclass(frozen=True)
-class GeneralizedRelativePoseResult:
+class GeneralizedRelativePoseResult(RansacStatistics):
     rig2_from_rig1: pycolmap.Rigid3d  # metric: the rig's baseline fixes the scale
-    inlier_mask: np.ndarray  # (N,) bool
-    num_inliers: int
-    num_iterations: int
 
 
 @dataclass(frozen=True)
-class GeneralizedAbsolutePoseResult:
+class GeneralizedAbsolutePoseResult(RansacStatistics):
     rig_from_world: pycolmap.Rigid3d
-    inlier_mask: np.ndarray  # (N,) bool
-    num_inliers: int
-    num_iterations: int
 
 
 def rigid3d(R: np.ndarray, t: np.ndarray) -> pycolmap.Rigid3d:
@@ -96,8 +99,8 @@ def relative_pose(rays1, rays2, *, max_error: float | np.ndarray, method: str = 
     if not out["success"] or out["num_inliers"] < max(5, min_num_inliers):
         raise EstimationError(f"no relative pose: {out['num_inliers']} of {len(f1)} "
                               f"correspondences agree (need {max(5, min_num_inliers)})")
-    return RelativePoseResult(rigid3d(out["R"], out["t"]), out["E"], out["inlier_mask"],
-                              out["num_inliers"], out["num_iterations"])
+    return RelativePoseResult(rigid3d(out["R"], out["t"]), out["E"],
+                              **RansacStatistics.fields_from(out))
 
 
 def absolute_pose(rays, points3D, *, max_error: float | np.ndarray, method: str = "kneip",
@@ -120,8 +123,8 @@ def absolute_pose(rays, points3D, *, max_error: float | np.ndarray, method: str 
     if not out["success"] or out["num_inliers"] < max(4, min_num_inliers):
         raise EstimationError(f"no absolute pose: {out['num_inliers']} of {len(f)} "
                               f"correspondences agree (need {max(4, min_num_inliers)})")
-    return AbsolutePoseResult(rigid3d(out["R"], out["t"]), out["inlier_mask"],
-                              out["num_inliers"], out["num_iterations"])
+    return AbsolutePoseResult(rigid3d(out["R"], out["t"]),
+                              **RansacStatistics.fields_from(out))
 
 
 def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
@@ -167,8 +170,8 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
     if not out["success"] or out["num_inliers"] < need:
         raise EstimationError(f"no generalized relative pose: {out['num_inliers']} of "
                               f"{len(f1)} correspondences agree (need {need})")
-    return GeneralizedRelativePoseResult(rigid3d(out["R"], out["t"]), out["inlier_mask"],
-                                         out["num_inliers"], out["num_iterations"])
+    return GeneralizedRelativePoseResult(rigid3d(out["R"], out["t"]),
+                                         **RansacStatistics.fields_from(out))
 
 
 def generalized_absolute_pose(rays, camera_index, points3D, cams_from_rig: list[pycolmap.Rigid3d],
@@ -195,8 +198,8 @@ def generalized_absolute_pose(rays, camera_index, points3D, cams_from_rig: list[
     if not out["success"] or out["num_inliers"] < need:
         raise EstimationError(f"no generalized absolute pose: {out['num_inliers']} of "
                               f"{len(f)} correspondences agree (need {need})")
-    return GeneralizedAbsolutePoseResult(rigid3d(out["R"], out["t"]), out["inlier_mask"],
-                                         out["num_inliers"], out["num_iterations"])
+    return GeneralizedAbsolutePoseResult(rigid3d(out["R"], out["t"]),
+                                         **RansacStatistics.fields_from(out))
 
 
 def five_point(rays1, rays2, *, method: str = "stewenius") -> list[np.ndarray]:
