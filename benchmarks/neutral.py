@@ -2,7 +2,9 @@
 from COLMAP's own generator (`pycolmap.synthesize_dataset` and `synthesize_noise`, the
 generator of COLMAP's mapper tests), where nothing in the data is chosen by us.
 
-Cases: every combination of --camera_models, --sizes (images of one camera), --noise
+Cases: every combination of --camera_models, --rigs (rigs x cameras per rig: 1x1 is one
+camera; the images are the rigs' frames, each rig's cameras in a calibrated rig, held fixed
+by every mapper), --sizes (images in all), --noise
 (keypoint standard deviation in pixels) and --inlier_ratios (`inlier_match_ratio`: the
 share of each pair's matches that are true; the generator puts its wrong matches among
 the raw matches alone, its two-view geometries hold the true ones: what COLMAP's mappers
@@ -25,7 +27,7 @@ The table gives, per case and mapper, the median over the seeds and, in brackets
 seed; and for ours, on how many seeds it is within 1 % of COLMAP's better mapper (the better
 of the two on that seed and measure) on R_err median, R_err max and AUC@1 deg.
 
-    python benchmarks/neutral.py [--seeds 0-9] [--sizes 30,150] [--noise 0.5,1.5]
+    python benchmarks/neutral.py [--seeds 0-9] [--rigs 1x1,2x3] [--sizes 30,150] [--noise 0.5,1.5]
         [--inlier_ratios 1.0,0.7,0.5] [--camera_models PINHOLE,SIMPLE_RADIAL]
         [--mappers ours,colmap_incremental,colmap_global] [--work_dir DIR]
         [--markdown BENCHMARKS.md] [--section neutral]
@@ -54,6 +56,7 @@ from mapper_speed import (MAPPERS, PreparedSet, largest_model, mapper_command, t
 from colmap_ext.geometry import rotation_angles_deg
 from colmap_ext.evaluate import aligned_to_ground_truth, evaluate
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
+from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
 
 # The generator's image size, and each camera model's calibrated parameters in it.
 IMAGE_SIZE = (1024, 768)
@@ -66,14 +69,21 @@ TOLERANCE = 0.01
 @dataclass(frozen=True)
 class Case:
     camera_model: str
+    rig: str  # "RxC": R rigs of C cameras each
     num_images: int
     noise_px: float
     inlier_ratio: float
 
     @property
     def name(self) -> str:
-        return (f"{self.camera_model.lower()}_{self.num_images}_noise{self.noise_px:g}"
+        rig = "" if self.rig == "1x1" else f"_rig{self.rig}"
+        return (f"{self.camera_model.lower()}{rig}_{self.num_images}_noise{self.noise_px:g}"
                 f"_inliers{self.inlier_ratio:g}")
+
+    @property
+    def rigs_and_cameras(self) -> tuple[int, int]:
+        num_rigs, num_cameras = map(int, self.rig.split("x"))
+        return num_rigs, num_cameras
 
 
 def generate(case: Case, seed: int, num_points: int, folder: Path) -> PreparedSet:
@@ -84,9 +94,9 @@ def generate(case: Case, seed: int, num_points: int, folder: Path) -> PreparedSe
         shutil.rmtree(folder, ignore_errors=True)
         truth.mkdir(parents=True)
         options = pycolmap.SyntheticDatasetOptions()
-        options.num_rigs = 1
-        options.num_cameras_per_rig = 1
-        options.num_frames_per_rig = case.num_images
+        options.num_rigs, options.num_cameras_per_rig = case.rigs_and_cameras
+        options.num_frames_per_rig = case.num_images // (options.num_rigs *
+                                                         options.num_cameras_per_rig)
         options.num_points3D = num_points
         options.camera_width, options.camera_height = IMAGE_SIZE
         options.camera_model_id = getattr(pycolmap.CameraModelId, case.camera_model)
@@ -116,7 +126,9 @@ def measure(model: pycolmap.Reconstruction | None, truth: GroundTruth,
         truth.poses[name].rotation.matrix().T @ pose.rotation.matrix()
         for name, pose in cameras.items()]))
     report = evaluate(model, truth)
+    consistency = rig_consistency(model, model_rig_frames(truth_model))
     return {"registered": model.num_reg_images(),
+            "rig_max_deg": consistency["rotation_max_deg"] if consistency else 0.0,
             "R_err_median_deg": float(np.median(R_err)), "R_err_max_deg": float(R_err.max()),
             "AUC_1deg": report["AUC_percent"]["1"],
             "points": model.num_points3D() / truth_model.num_points3D(),
@@ -152,6 +164,7 @@ def run_seed(case: Case, seed: int, mappers: list[str], num_points: int, work: P
 
 # Measure, direction of "worse", cell digits.
 COLUMNS = {"R_err_median_deg": (max, 4), "R_err_max_deg": (max, 4), "AUC_1deg": (min, 2),
+           "rig_max_deg": (max, 6),
            "points": (max, 2), "observations": (min, 2), "time_s": (max, 1), "peak_mib": (max, 0)}
 
 
@@ -191,14 +204,15 @@ def case_rows(case: Case, per_seed: list[dict], mappers: list[str]) -> list[list
                             for key in ("R_err_median_deg", "R_err_max_deg", "AUC_1deg")) \
             if mapper == "ours" and len(mappers) > 1 else "–"
         registered = min(e["registered"] for e in entries)
-        rows.append([case.camera_model, str(case.num_images), f"{case.noise_px:g}",
+        rows.append([case.camera_model, case.rig, str(case.num_images), f"{case.noise_px:g}",
                      f"{case.inlier_ratio:g}", mapper, f"{registered}/{case.num_images}",
-                     *cells[:5], cells[5], ratio, cells[6], within])
+                     *cells[:6], cells[6], ratio, cells[7], within])
     return rows
 
 
-HEADINGS = ["camera", "images", "noise [px]", "inlier ratio", "mapper", "registered (fewest)",
-            "R_err median [deg]", "R_err max [deg]", "AUC@1deg [%]", "points / truth",
+HEADINGS = ["camera", "rigs x cameras", "images", "noise [px]", "inlier ratio", "mapper",
+            "registered (fewest)", "R_err median [deg]", "R_err max [deg]", "AUC@1deg [%]",
+            "rig kept [deg]", "points / truth",
             "observations / truth", "time [s]", "time / COLMAP inc.", "peak memory [MiB]",
             "ours within 1 % on seeds (R_err med / max / AUC@1)"]
 
@@ -208,18 +222,20 @@ def section(rows: list[list[str]], command: str, elapsed_s: float, num_points: i
         "## Neutral ground: COLMAP's own generator", "",
         f"`{command}` on {datetime.date.today().isoformat()} ({elapsed_s / 60:.1f} min in all).",
         f"- machine: {machine_line()}", f"- versions: {versions_line()}",
-        f"- inputs: `pycolmap.synthesize_dataset` (one camera, {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, "
+        f"- inputs: `pycolmap.synthesize_dataset` (rigs of cameras, {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, "
         f"PINHOLE {CAMERA_PARAMS['PINHOLE']} or SIMPLE_RADIAL {CAMERA_PARAMS['SIMPLE_RADIAL']}, "
         f"{num_points} points seen by every image, exhaustive matches of which the inlier ratio "
         "are true; the wrong ones are among the raw matches alone, the verified two-view "
         "geometries hold the true ones) and `synthesize_noise` (keypoint noise), "
-        "`pycolmap.set_random_seed(seed)` before each; intrinsics fixed in every mapper, "
-        "mapper seed 0.",
+        "`pycolmap.set_random_seed(seed)` before each; intrinsics and rigs fixed in every "
+        "mapper, mapper seed 0.",
         "- each mapper a whole process on its own copy of the database (as "
         "`benchmarks/mapper_speed.py`); cells: median over the seeds (worst seed). R_err: "
         "after a similarity alignment on the camera centres; AUC@1deg: relative poses of "
         "image pairs, as `colmap-ext evaluate` reports it; points and observations of the "
-        "largest model over the truth's; time and peak memory of the whole process.",
+        "largest model over the truth's; rig kept: the largest deviation of a relative "
+        "rotation between two images of one frame from the rig's (`rig_consistency`); time "
+        "and peak memory of the whole process.",
         "", markdown_table(HEADINGS, rows)])
 
 
@@ -239,6 +255,7 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--seeds", default="0-9", help="generator seeds, e.g. 0-9 or 0,3")
+    parser.add_argument("--rigs", default="1x1", help="rigs x cameras per rig, e.g. 1x1,2x3")
     parser.add_argument("--sizes", default="30,150", help="images per set")
     parser.add_argument("--noise", default="0.5,1.5", help="keypoint noise, pixels")
     parser.add_argument("--inlier_ratios", default="1.0,0.7,0.5")
@@ -259,7 +276,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"mappers from {', '.join(MAPPERS)}, camera models from "
                      f"{', '.join(CAMERA_PARAMS)}")
     cases = [Case(*values) for values in itertools.product(
-        camera_models, parse_list(args.sizes, int), parse_list(args.noise),
+        camera_models, args.rigs.split(","), parse_list(args.sizes, int), parse_list(args.noise),
         parse_list(args.inlier_ratios))]
     seeds = parse_list(args.seeds, int)
     command = "python benchmarks/neutral.py " + " ".join(argv if argv is not None else sys.argv[1:])

@@ -34,6 +34,7 @@ class ImageFeatures:
     name: str
     camera_id: int
     keypoints: np.ndarray  # (n, 2) pixel coordinates, COLMAP's convention (centre of top-left pixel at 0.5)
+    frame_id: int | None = None  # None in a database without frames (COLMAP 3.x)
 
 
 class DescriptorReader(Mapping[int, np.ndarray]):
@@ -90,6 +91,39 @@ class DescriptorReader(Mapping[int, np.ndarray]):
         return dict, (dict(self.items()),)
 
 
+@dataclass(frozen=True)
+class RigCalibration:
+    """A rig of COLMAP 4's database: its reference camera, and the pose of each other
+    camera in the rig (plain data, to send to worker processes)."""
+
+    ref_camera_id: int
+    cams_from_rig: dict[int, pycolmap.Rigid3d]  # non-reference camera id -> sensor_from_rig
+
+    def rig(self, rig_id: int) -> pycolmap.Rig:
+        rig = pycolmap.Rig()
+        rig.rig_id = rig_id
+        rig.add_ref_sensor(_camera_sensor(self.ref_camera_id))
+        for camera_id, cam_from_rig in self.cams_from_rig.items():
+            rig.add_sensor(_camera_sensor(camera_id), cam_from_rig)
+        return rig
+
+    @property
+    def camera_ids(self) -> list[int]:
+        return [self.ref_camera_id, *self.cams_from_rig]
+
+
+@dataclass(frozen=True)
+class FrameImages:
+    """A frame of COLMAP 4's database: its rig and its images."""
+
+    rig_id: int
+    image_ids: tuple[int, ...]
+
+
+def _camera_sensor(camera_id: int) -> pycolmap.sensor_t:
+    return pycolmap.sensor_t(pycolmap.SensorType.CAMERA, camera_id)
+
+
 @dataclass
 class DatabaseContents:
     cameras: dict[int, pycolmap.Camera]
@@ -98,6 +132,10 @@ class DatabaseContents:
     # (image_id1, image_id2) with id1 < id2 -> (m, 2) keypoint indices into image1, image2
     verified_matches: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
     raw_matches: dict[tuple[int, int], np.ndarray] = field(default_factory=dict)
+    # COLMAP 4's rigs and frames; empty for a COLMAP 3.x database, whose images are each
+    # a frame of their own (see mapper/model.py's database_reconstruction).
+    rigs: dict[int, RigCalibration] = field(default_factory=dict)
+    frames: dict[int, FrameImages] = field(default_factory=dict)
 
 
 def check_database_file(path: Path) -> None:
@@ -251,7 +289,8 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
             else np.zeros((0, 2), np.float32)
         images[image.image_id] = ImageFeatures(
             image.image_id, image.name, image.camera_id,
-            np.asarray(keypoints[:, :2], dtype=np.float64))
+            np.asarray(keypoints[:, :2], dtype=np.float64),
+            image.frame_id if image.has_frame_id() else None)
     if not images:
         raise UserError(f"the database has no images: {path}")
     for image in images.values():
@@ -262,6 +301,7 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
         raise UserError(f"the database has no keypoints: {path} (run feature extraction first)")
 
     contents = DatabaseContents(cameras, images, {})
+    _read_rigs_and_frames(db, contents, path)
     # Keypoint indices as int32, each pair's read arrays released once converted: on
     # long turntables (every pair matched) the matches are most of the memory.
     pair_ids, geometries = db.read_two_view_geometries()
@@ -281,6 +321,28 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
         raise UserError(f"the database has no matches: {path} (run feature matching first)")
     _check_match_indices(contents, path)
     return contents
+
+
+def _read_rigs_and_frames(db: pycolmap.Database, contents: DatabaseContents, path: Path) -> None:
+    """The database's rigs and frames, where every image belongs to a frame whose rig
+    holds its camera; none where no image has a frame (a COLMAP 3.x database)."""
+    if all(image.frame_id is None for image in contents.images.values()):
+        return
+    for rig in db.read_all_rigs():
+        cameras = [sensor for sensor in rig.non_ref_sensors
+                   if sensor.type == pycolmap.SensorType.CAMERA]
+        contents.rigs[rig.rig_id] = RigCalibration(
+            rig.ref_sensor_id.id, {sensor.id: rig.sensor_from_rig(sensor) for sensor in cameras})
+    for frame in db.read_all_frames():
+        contents.frames[frame.frame_id] = FrameImages(
+            frame.rig_id, tuple(data_id.id for data_id in frame.image_ids))
+    for image in contents.images.values():
+        frame = contents.frames.get(image.frame_id)
+        rig = contents.rigs.get(frame.rig_id) if frame is not None else None
+        if rig is None or image.camera_id not in rig.camera_ids or \
+                image.image_id not in frame.image_ids:
+            raise UserError(f"image {image.name} in {path} has no frame whose rig holds its "
+                            f"camera {image.camera_id}: run colmap rig_configurator again")
 
 
 _FAILED_CONFIGS = (pycolmap.TwoViewGeometryConfiguration.UNDEFINED,

@@ -22,7 +22,7 @@ from colmap_ext.mapper.options import BundleAdjustmentOptions
 from colmap_ext.mapper.cli import main as mapper_cli
 from colmap_ext.mapper.merging import find_similarity
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.pipeline import StageTimer, export, merge_models, reconstruct
+from colmap_ext.mapper.pipeline import StageTimer, merge_models, reconstruct
 from colmap_ext.mapper.descriptors import NearestDescriptors
 from colmap_ext.mapper.filtering import rotation_uncertainty
 from colmap_ext.mapper.initial_pair import (MAX_CANDIDATE_PAIRS, choose_initial_pair,
@@ -207,13 +207,13 @@ def test_sequence_order_grows_by_name_and_is_accurate(synthetic, tmp_path, monke
     round the ring here: 4 5 6 3 2 1 0 then 10), and recovers the whole ring."""
     folder, scene = synthetic
     registered = []
-    register = Model.register
+    register_frame = Model.register_frame
 
-    def record(model, image_id, cam_from_world):
+    def record(model, image_id, rig_from_world):
         registered.append(scene.image_names.index(model.db.images[image_id].name))
-        register(model, image_id, cam_from_world)
+        return register_frame(model, image_id, rig_from_world)
 
-    monkeypatch.setattr(Model, "register", record)
+    monkeypatch.setattr(Model, "register_frame", record)
     result = mapper_cli(str(folder / "database.db"), str(folder / "images"),
                         str(tmp_path / "out"), order="sequence", seed=0)
     # Measured over seeds 0-4: 4 5 6 3 2 1 0 7 8 9 10 11.
@@ -255,11 +255,11 @@ def ring_arcs(db, options, monkeypatch) -> tuple[list[Model], dict]:
     reconstruct(db, options, progress=False)
     monkeypatch.undo()
     [([model], matches)] = handed
-    names = sorted(db.images[i].name for i in model.poses)
+    names = sorted(db.images[i].name for i in model.registered)
     arcs = []
     for arc_names in (names[:len(names) // 2], names[len(names) // 2:]):
         arc = copy.deepcopy(model)
-        for image_id in list(arc.poses):
+        for image_id in arc.registered:
             if arc.db.images[image_id].name not in arc_names:
                 arc.deregister(image_id)
         arcs.append(arc)
@@ -268,10 +268,10 @@ def ring_arcs(db, options, monkeypatch) -> tuple[list[Model], dict]:
 
 def true_from_model(model: Model, scene) -> pycolmap.Sim3d:
     """The similarity that puts the model's camera centres best onto the true ones."""
-    registered = list(model.poses)
+    registered = model.registered
     true = true_centres(scene)
     return pycolmap.estimate_sim3d(
-        np.array([model.poses[i].inverse().translation for i in registered]),
+        np.array([model.centre(i) for i in registered]),
         np.array([true[model.db.images[i].name] for i in registered]))
 
 
@@ -303,7 +303,7 @@ def test_merging_recovers_a_known_similarity(synthetic, monkeypatch):
 
     joined = merge_models([target, source], matches, options, StageTimer())
     assert len(joined) == 1
-    model = export(joined[0])
+    model = joined[0].export()
     report = evaluate(model, ring_truth(scene))
     assert report["num_registered"] == scene.num_images
     assert report["R_err_max_deg"] < RING_MAX_R_ERR_DEG  # measured 0.060 deg

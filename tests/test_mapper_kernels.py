@@ -169,7 +169,7 @@ def test_descriptors_are_read_from_the_database_copy_when_asked(tmp_path) -> Non
 
 
 def brute_force_widest_angle_deg(model, point_id: int) -> float:
-    rays = np.array([model.xyz[point_id] - model.centre(i) for i in model.tracks[point_id]])
+    rays = np.array([model.xyz[point_id] - model.centre(i) for i in model.track(point_id)])
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     return float(np.degrees(np.arccos(np.clip((rays @ rays.T).min(), -1, 1))))
 
@@ -185,7 +185,7 @@ def test_triangulation_angle_filter_agrees_with_every_pair(seed: int) -> None:
     xyz = rng.normal(size=(301, 3)) * 5 + [0, 0, 10]
     tracks = {p: {int(i): 0 for i in rng.choice(num_images, rng.integers(1, num_images + 1),
                                                   replace=False)} for p in range(1, 301)}
-    model = SimpleNamespace(poses=poses, xyz=xyz, tracks=tracks,
+    model = SimpleNamespace(registered=list(poses), xyz=xyz, track=tracks.__getitem__,
                             centre=lambda i: poses[i].inverse().translation)
     widest = np.array([brute_force_widest_angle_deg(model, p) for p in tracks])
     assert 0 < (widest >= 1.5).sum() < len(widest)  # both answers occur
@@ -246,7 +246,7 @@ def test_epipolar_support_tells_the_true_pose_from_a_turned_one(tmp_path) -> Non
         return pycolmap.Rigid3d(rotation, np.zeros(3)) * true_pose
 
     # Measured: 1.0 for the true pose, 0.01 pitched, 0.43 turned.
-    assert epipolar_support(model, image_id, true_pose, graph, options) > 0.97
-    assert epipolar_support(model, image_id, turned([1.0, 0.0, 0.0]), graph, options) < 0.1
-    assert epipolar_support(model, image_id, turned([0.0, 5.0, 0.0]), graph, options) < 0.6
-    assert epipolar_support(model, image_id, turned([1.0, 0.0, 0.0]), {}, options) == 1.0
+    assert epipolar_support(model, {image_id: true_pose}, graph, options) > 0.97
+    assert epipolar_support(model, {image_id: turned([1.0, 0.0, 0.0])}, graph, options) < 0.1
+    assert epipolar_support(model, {image_id: turned([0.0, 5.0, 0.0])}, graph, options) < 0.6
+    assert epipolar_support(model, {image_id: turned([1.0, 0.0, 0.0])}, {}, options) == 1.0

@@ -12,9 +12,10 @@ import pycolmap
 import pytest
 import yaml
 
-from colmap_ext import evaluate, reconstruct, rigs
+from colmap_ext import evaluate, mapper, reconstruct, rigs
 from colmap_ext.compare import compare
 from colmap_ext.errors import UserError
+from colmap_ext.ground_truth import GroundTruth
 from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
 from colmap_ext.synthetic.render import render_images
 from colmap_ext.synthetic.scene import Scene, ring_scene
@@ -304,3 +305,35 @@ def test_compare_measures_each_mappers_model_against_the_databases_rig(tmp_path:
         assert consistency["num_frames"] == 5, name
         assert consistency["rotation_max_deg"] < 1e-3, name
         assert consistency["translation_max"] < 1e-3, name
+
+
+@pytest.mark.parametrize(("num_rigs", "num_cameras"), [(1, 2), (2, 3)])
+def test_mapper_registers_whole_frames_and_keeps_the_rig(tmp_path: Path, num_rigs: int,
+                                                         num_cameras: int) -> None:
+    """COLMAP's generator, rigs of calibrated cameras with 0.5 px noise: every image
+    registered, each frame in one piece with the rig's relative poses exactly (held
+    constant), poses near the truth, and the rigs and frames in the model written."""
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs, options.num_cameras_per_rig = num_rigs, num_cameras
+    options.num_frames_per_rig = 12 // num_rigs
+    options.num_points3D = 300
+    noise = pycolmap.SyntheticNoiseOptions()
+    noise.point2D_stddev = 0.5
+    pycolmap.set_random_seed(0)
+    with pycolmap.Database.open(str(tmp_path / "database.db")) as db:
+        truth = pycolmap.synthesize_dataset(options, db)
+        pycolmap.synthesize_noise(noise, truth, db)
+    (tmp_path / "images").mkdir()
+
+    mapper.run(tmp_path / "database.db", tmp_path / "images", tmp_path / "out",
+               mapper.MapperOptions(seed=0), progress=False)
+
+    model = pycolmap.Reconstruction(tmp_path / "out" / "0")
+    assert model.num_reg_images() == truth.num_images()
+    assert model.num_frames() == truth.num_frames() and model.num_rigs() == num_rigs
+    kept = rig_consistency(model, model_rig_frames(truth))
+    assert kept["num_frames"] == truth.num_frames()
+    assert kept["rotation_max_deg"] < 1e-6 and kept["translation_max"] < 1e-6
+    report = evaluate.evaluate(model, GroundTruth(
+        {image.name: image.cam_from_world() for image in truth.images.values()}, {}))
+    assert report["R_err_max_deg"] < 0.1  # measured 0.023 and 0.038 deg

@@ -47,14 +47,15 @@ class ClusterModel:
 
 
 def database_subset(db: DatabaseContents, image_ids: list[int]) -> DatabaseContents:
-    """The cameras, images and matches of `image_ids` alone: what a task needs."""
+    """The images and matches of `image_ids` alone, with every camera, rig and frame:
+    what a task needs."""
     keep = set(image_ids)
-    images = {i: db.images[i] for i in image_ids}
     return DatabaseContents(
-        {c: db.cameras[c] for c in {image.camera_id for image in images.values()}}, images,
+        db.cameras, {i: db.images[i] for i in image_ids},
         {i: db.descriptors[i] for i in image_ids},
         {p: m for p, m in db.verified_matches.items() if p[0] in keep and p[1] in keep},
-        {p: m for p, m in db.raw_matches.items() if p[0] in keep and p[1] in keep})
+        {p: m for p, m in db.raw_matches.items() if p[0] in keep and p[1] in keep},
+        db.rigs, db.frames)
 
 
 def map_cluster(index: int, db: DatabaseContents, options: MapperOptions,

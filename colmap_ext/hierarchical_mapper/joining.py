@@ -12,7 +12,7 @@ from colmap_ext.geometry import (fit_similarity, mean_rotation, rotation_angles_
                                  vector_angles_deg)
 from colmap_ext.hierarchical_mapper.clusters import ClusterModel
 from colmap_ext.hierarchical_mapper.options import HierarchicalOptions
-from colmap_ext.mapper.bundle_adjustment import posed_images
+from colmap_ext.mapper.model import database_reconstruction
 
 
 def similarity(target: ClusterModel, source: ClusterModel,
@@ -106,8 +106,8 @@ def spanning_trees(models: list[ClusterModel], options: HierarchicalOptions
 
 def join(db: DatabaseContents, models: list[ClusterModel],
          root_from_model: dict[int, pycolmap.Sim3d]) -> pycolmap.Reconstruction:
-    """One reconstruction of a group: each image posed by the model that observes most
-    through it; points that share an observation (image, keypoint) merged into one, at
+    """One reconstruction of a group: each frame posed by the model that observes most
+    through one of its images; points that share an observation (image, keypoint) merged into one, at
     the mean of their positions, keeping one keypoint per image (the first model's)."""
     pose_of: dict[int, tuple[int, pycolmap.Rigid3d]] = {}
     for m, sim in root_from_model.items():
@@ -116,8 +116,13 @@ def join(db: DatabaseContents, models: list[ClusterModel],
             support = counts.get(image_id, 0)
             if image_id not in pose_of or support > pose_of[image_id][0]:
                 pose_of[image_id] = (support, sim.transform_camera_world(pycolmap.Rigid3d(matrix)))
-    reconstruction = posed_images(db, db.cameras, {image_id: pose_of[image_id][1]
-                                                   for image_id in sorted(pose_of)})
+    reconstruction = database_reconstruction(db, pose_of)
+    for image_id in sorted(pose_of, key=lambda i: -pose_of[i][0]):
+        image = reconstruction.images[image_id]
+        if not image.has_pose:
+            reconstruction.frames[image.frame_id].set_cam_from_world(image.camera_id,
+                                                                     pose_of[image_id][1])
+            reconstruction.register_frame(image.frame_id)
     # Every model's points in the root's frame, numbered globally, and their observations.
     group = list(root_from_model)
     xyz = np.concatenate([np.zeros((0, 3))] + [root_from_model[m] * models[m].xyz

@@ -1,10 +1,11 @@
 """The calibrated incremental mapper: a drop-in for `colmap mapper` with known intrinsics.
 
 One module per step of the method (SPEC.md, steps 4 to 7):
-- `model`: the growing model (poses, points, tracks) over the database's features
+- `model`: the growing model, a pycolmap.Reconstruction (cameras, rigs, frames, poses,
+  points, tracks), and the rays and indexes the steps derive from it
 - `two_view`: verified matches, from the database or our 5-point RANSAC
 - `initial_pair`: choosing and reconstructing the first two images
-- `registration`: 2D-3D correspondences and P3P RANSAC for the next image
+- `registration`: 2D-3D correspondences and P3P (a rig's frame: GP3P) RANSAC for the next frame
 - `guided_matching`: visually and geometrically compatible features in registered images
 - `triangulation`: new points and longer tracks from those features
 - `bundle_adjustment`: local and global refinement through pycolmap

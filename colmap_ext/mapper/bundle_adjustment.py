@@ -1,9 +1,9 @@
 """Bundle adjustment through pycolmap (Ceres): intrinsics constant unless a global
-adjustment is asked to refine them (BundleAdjustmentOptions.refine_*).
+adjustment is asked to refine them (BundleAdjustmentOptions.refine_*), the rigs'
+`sensor_from_rig` constant unless BundleAdjustmentOptions.refine_sensor_from_rig.
 
-Each adjustment is a BundleAdjustmentConfig solved on the model's own
-pycolmap.Reconstruction (model.py); the refined poses and points are then read into
-the model's arrays.
+Each adjustment is a BundleAdjustmentConfig solved on the model's pycolmap.Reconstruction
+in place (model.py); a solve that fails puts back what it changed.
 """
 
 from __future__ import annotations
@@ -11,24 +11,8 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
-from colmap_ext.database import DatabaseContents
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
-
-
-def posed_images(db: DatabaseContents, cameras: dict[int, pycolmap.Camera],
-                 poses: dict[int, pycolmap.Rigid3d]) -> pycolmap.Reconstruction:
-    """A reconstruction of the database's images posed by `poses` (cam_from_world by
-    image id, ids kept), with their keypoints and cameras, and no points yet."""
-    reconstruction = pycolmap.Reconstruction()
-    for camera_id in sorted({db.images[i].camera_id for i in poses}):
-        reconstruction.add_camera_with_trivial_rig(cameras[camera_id])
-    for image_id, pose in poses.items():
-        features = db.images[image_id]
-        image = pycolmap.Image(name=features.name, keypoints=features.keypoints,
-                               camera_id=features.camera_id, image_id=image_id)
-        reconstruction.add_image_with_trivial_frame(image, pose)
-    return reconstruction
 
 
 def adjustment_options(options: MapperOptions, max_iterations: int,
@@ -76,58 +60,79 @@ def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, options: Mapp
 def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
                   max_iterations: int, refine_intrinsics: bool = False,
                   loss: str | None = None, loss_scale_px: float | None = None) -> int:
-    """Adjust, on the model's reconstruction in place, the poses of `image_ids` (except
-    the model's fixed images) and the points they observe, as COLMAP's adjustments do:
-    a point seen by at most BundleAdjustmentOptions.local_max_track_length images brings
-    its other observations in, their poses constant; a longer track is already well
-    determined and enters through the observations of `image_ids` alone, held constant
-    where they are just one. Without two constant images, two cameras fix the gauge.
-    With `refine_intrinsics`, the intrinsics the options name are refined too, but for
-    the cameras in BundleAdjustmentOptions.constant_camera_ids; `loss` and
+    """Adjust, on the model's reconstruction in place, the frame poses of `image_ids`
+    (except the model's fixed frames) and the points they observe, as COLMAP's
+    adjustments do: a point seen by at most BundleAdjustmentOptions.local_max_track_length
+    images brings its other observations in, their poses constant; a longer track is
+    already well determined and enters through the observations of `image_ids` alone,
+    held constant where they are just one. Without two constant frames, two cameras fix
+    the gauge. With `refine_intrinsics`, the intrinsics the options name are refined
+    too, but for the cameras in BundleAdjustmentOptions.constant_camera_ids; `loss` and
     `loss_scale_px` replace the options' robust loss and its scale. Returns the number of
     Ceres iterations."""
     ba = options.bundle_adjustment
-    requested = set(image_ids)
     reconstruction = model.reconstruction
+    requested = {i for image_id in image_ids for i in model.frame_images(image_id)}
     refine_intrinsics = refine_intrinsics and ba.refines_intrinsics
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in sorted(requested):
         config.add_image(image_id)
-        if image_id in model.fixed_image_ids:
-            config.set_constant_rig_from_world_pose(reconstruction.images[image_id].frame_id)
+    fixed = {i for i in requested if model.frame_id(i) in model.fixed_frame_ids}
+    for frame_id in {model.frame_id(i) for i in fixed}:
+        config.set_constant_rig_from_world_pose(frame_id)
     for camera_id in reconstruction.cameras:
         if not refine_intrinsics or camera_id in ba.constant_camera_ids:
             config.set_constant_cam_intrinsics(camera_id)
+    if not ba.refine_sensor_from_rig:
+        for rig in reconstruction.rigs.values():
+            for sensor_id in rig.non_ref_sensors:
+                config.set_constant_sensor_from_rig_pose(sensor_id)
 
-    if requested >= model.poses.keys():
+    if len(requested) == model.num_registered:
         # A global adjustment: the images hold every observation of every point.
-        variable_point_ids, outside = list(model.tracks), set()
+        variable_point_ids, outside = model.point_ids, set()
     else:
         variable_point_ids, outside = _add_local_points(model, requested, config,
                                                         ba.local_max_track_length)
-    constant = (outside - requested) | (requested & model.fixed_image_ids)
+    constant = {model.frame_id(i) for i in (outside - requested) | fixed}
     if len(constant) < 2:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
 
     ba_options = adjustment_options(options, max_iterations, refine_intrinsics, loss=loss,
                                     loss_scale_px=loss_scale_px)
+    frame_ids = {model.frame_id(i) for i in requested - fixed}
+    before = _variables(reconstruction, frame_ids, variable_point_ids)
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
-    variable_image_ids = requested - model.fixed_image_ids
     if not summary.is_solution_usable():
         # Not solved (e.g. COLMAP could not fix the gauge): the model stays as it was.
-        for image_id in variable_image_ids:
-            model.set_pose(image_id, model.poses[image_id])
-        for point_id in variable_point_ids:
-            reconstruction.points3D[point_id].xyz = model.xyz[point_id]
+        _restore(reconstruction, *before)
         return 0
-    for image_id in variable_image_ids:
-        model.poses[image_id] = reconstruction.images[image_id].cam_from_world()
-    for point_id in variable_point_ids:
-        model.xyz[point_id] = reconstruction.points3D[point_id].xyz
+    model.refresh_points(variable_point_ids)
     if refine_intrinsics:
-        for camera_id, camera in reconstruction.cameras.items():
-            model.set_camera(camera_id, camera)
+        model.refresh_cameras()
     return summary.ceres_summary.num_successful_steps + summary.ceres_summary.num_unsuccessful_steps
+
+
+def _variables(reconstruction: pycolmap.Reconstruction, frame_ids: set[int],
+               point_ids: list[int]) -> tuple[dict, dict, dict, dict]:
+    """What a solve may change: frame poses, point positions, intrinsics, rig poses."""
+    return ({frame_id: reconstruction.frames[frame_id].rig_from_world for frame_id in frame_ids},
+            {point_id: reconstruction.points3D[point_id].xyz.copy() for point_id in point_ids},
+            {camera_id: camera.params.copy() for camera_id, camera in reconstruction.cameras.items()},
+            {rig_id: dict(rig.non_ref_sensors) for rig_id, rig in reconstruction.rigs.items()})
+
+
+def _restore(reconstruction: pycolmap.Reconstruction, poses: dict, points: dict,
+             params: dict, sensors: dict) -> None:
+    for frame_id, rig_from_world in poses.items():
+        reconstruction.frames[frame_id].rig_from_world = rig_from_world
+    for point_id, xyz in points.items():
+        reconstruction.points3D[point_id].xyz = xyz
+    for camera_id, camera_params in params.items():
+        reconstruction.cameras[camera_id].params = camera_params
+    for rig_id, sensor_from_rig in sensors.items():
+        for sensor, pose in sensor_from_rig.items():
+            reconstruction.rigs[rig_id].set_sensor_from_rig(sensor, pose)
 
 
 def _add_local_points(model: Model, image_ids: set[int], config: pycolmap.BundleAdjustmentConfig,
@@ -138,7 +143,7 @@ def _add_local_points(model: Model, image_ids: set[int], config: pycolmap.Bundle
         [model.observations(image_id)[1] for image_id in image_ids])).tolist()
     variable_point_ids, reached = [], set()
     for point_id in point_ids:
-        track = model.tracks[point_id]
+        track = model.track(point_id)
         if len(track) <= max_track_length:
             config.add_variable_point(point_id)
             reached.update(track)

@@ -32,10 +32,10 @@ def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
         kps, point_ids = model.observations(image_id)
         touched.update(point_ids.tolist())
         errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-        for point_id in point_ids[errors > limit].tolist():
-            model.delete_observation(point_id, image_id)
+        for kp in kps[errors > limit].tolist():
+            model.delete_observation(image_id, kp)
             removed_observations += 1
-    candidates = [p for p in touched if p in model.tracks]
+    candidates = [p for p in touched if model.has_point(p)]
     wide = has_triangulation_angle(model, candidates, options.filtering.min_tri_angle_deg)
     removed_points = 0
     for point_id, wide_enough in zip(candidates, wide):
@@ -67,12 +67,12 @@ def median_reprojection_error(model: Model, image_ids: list[int]) -> float:
 
 def _supported(model: Model, point_id: int, wide_enough: bool, options: MapperOptions,
                final: bool) -> bool:
-    track = model.tracks[point_id]
-    if len(track) < 2:
+    track_length = model.track_length(point_id)
+    if track_length < 2:
         return False
     age = model.num_registered - model.born[point_id]
     filtering = options.filtering
-    if len(track) < filtering.min_track_length and \
+    if track_length < filtering.min_track_length and \
             (final or age >= filtering.track_grace_registrations):
         return False
     return bool(wide_enough)
@@ -87,10 +87,12 @@ def has_triangulation_angle(model: Model, point_ids: list[int], min_angle_deg: f
     the points both bounds leave undecided are compared pair by pair."""
     if not point_ids:
         return np.zeros(0, bool)
-    image_index = {image_id: k for k, image_id in enumerate(model.poses)}
-    centres = np.array([model.centre(image_id) for image_id in model.poses])
-    lengths = np.array([len(model.tracks[p]) for p in point_ids])
-    observed = np.fromiter((image_index[i] for p in point_ids for i in model.tracks[p]),
+    registered = model.registered
+    image_index = dict(zip(registered, range(len(registered))))
+    centres = np.array([model.centre(image_id) for image_id in registered])
+    tracks = [model.track(p) for p in point_ids]
+    lengths = np.array([len(track) for track in tracks])
+    observed = np.fromiter((image_index[i] for track in tracks for i in track),
                            np.int64, count=int(lengths.sum()))
     rays = np.repeat(model.xyz[point_ids], lengths, axis=0) - centres[observed]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
@@ -125,9 +127,12 @@ def filter_images(model: Model, options: MapperOptions) -> list[int]:
     and nothing registered after it corrects it. Judged at the end, not at
     registration, an image that later images and joined models support is kept."""
     weak = []
-    for image_id in sorted(set(model.poses) - model.fixed_image_ids):
+    for image_id in model.registered:
+        if model.frame_id(image_id) in model.fixed_frame_ids or \
+                len(model.frame_images(image_id)) > 1:
+            continue  # a rig's frame is posed by all its images together
         _, point_ids = model.observations(image_id)
-        if rotation_uncertainty(model.poses[image_id], model.xyz[point_ids]) > \
+        if rotation_uncertainty(model.pose(image_id), model.xyz[point_ids]) > \
                 options.filtering.max_rotation_uncertainty:
             model.deregister(image_id)
             weak.append(image_id)

@@ -127,9 +127,10 @@ class Flag:
 # Options that refine the intrinsics; off unless asked for on the command line or in
 # MapperOptions.
 INTRINSICS_REFINEMENT = ("Mapper.ba_refine_focal_length", "Mapper.ba_refine_principal_point",
-                         "Mapper.ba_refine_extra_params")
+                         "Mapper.ba_refine_extra_params", "Mapper.ba_refine_sensor_from_rig")
 # Reasons shared by several options.
-_INTRINSICS = "the intrinsics are known and held constant, as the method assumes"
+_INTRINSICS = ("the intrinsics (and a rig's calibration) are known and held constant, as the "
+               "method assumes")
 _BOUNDS = ("the intrinsics are known; refined ones (--Mapper.ba_refine_*) are not checked "
            "against bounds")
 _TRIANGULATOR = ("points come from the method's guided matching (features compatible in at "
@@ -194,8 +195,9 @@ FLAGS: tuple[Flag, ...] = (
     Flag("Mapper.ba_refine_extra_params", bool, "ba_refine_extra_params",
          "bundle_adjustment.refine_extra_params", "refine the extra params in global "
          "adjustments; 0: known and constant, as the method assumes"),
-    _na("Mapper.ba_refine_sensor_from_rig", bool, "ba_refine_sensor_from_rig", True,
-        f"{_TRIVIAL_RIGS}: there is no sensor-from-rig pose to refine"),
+    Flag("Mapper.ba_refine_sensor_from_rig", bool, "ba_refine_sensor_from_rig",
+         "bundle_adjustment.refine_sensor_from_rig", "refine the poses of a rig's cameras "
+         "relative to the rig; 0: the calibrated rig is held constant"),
     _na("Mapper.constant_rig_list_path", str, None, "",
         f"{_TRIVIAL_RIGS}: there is no rig to hold constant"),
     Flag("Mapper.constant_camera_list_path", str, None, "bundle_adjustment.constant_camera_ids",
@@ -358,7 +360,8 @@ def mapper_options(values: dict[str, Any], base: MapperOptions | None = None) ->
             logger.warning("colmap-ext: --%s %s: not applicable: %s", flag.name, shown(value),
                            flag.help)
     refined = [name.removeprefix("refine_").replace("_", " ")
-               for name in ("refine_focal_length", "refine_principal_point", "refine_extra_params")
+               for name in ("refine_focal_length", "refine_principal_point", "refine_extra_params",
+                            "refine_sensor_from_rig")
                if getattr(options.bundle_adjustment, name)]
     if refined:
         logger.warning("colmap-ext: refining the %s in global bundle adjustment, as asked "
@@ -428,7 +431,7 @@ def pycolmap_values(options: Any) -> dict[str, Any]:
 
 
 def pycolmap_options(options: Any) -> MapperOptions:
-    """MapperOptions from a `pycolmap.IncrementalPipelineOptions`. Its intrinsics
+    """MapperOptions from a `pycolmap.IncrementalPipelineOptions`. Its intrinsics and rig
     refinement (on by pycolmap's default, which cannot be told from a request) is not
     applied, and named in the log: the intrinsics are known. To refine them, set
     MapperOptions.bundle_adjustment.refine_* (or pass --Mapper.ba_refine_* 1)."""

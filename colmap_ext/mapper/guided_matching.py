@@ -27,8 +27,7 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
         return empty
     index, angles = model.nearest(image_id, other_id)
     index, angles = index[kps], angles[kps]
-    E = pycolmap.essential_matrix_from_pose(model.poses[other_id] *
-                                            model.poses[image_id].inverse())
+    E = pycolmap.essential_matrix_from_pose(model.pose(other_id) * model.pose(image_id).inverse())
     repeated = np.repeat(kps, index.shape[1])
     max_errors = options.guided_matching.max_epipolar_error_px * pair_pixel_angles(
         model, image_id, repeated, other_id, index.ravel())

@@ -1,8 +1,11 @@
 """The initial pair (paper, step 3): 5-point RANSAC for the relative pose, metric
-triangulation of the consensus set, guided matching for more (see pipeline)."""
+triangulation of the consensus set, guided matching for more (see pipeline). Two
+frames of a rig are related by the generalized relative pose of all their images'
+matches (OpenGV), whose translation the rig makes metric."""
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -27,6 +30,8 @@ class TwoViewReconstruction:
     matches: np.ndarray  # (n, 2) matches that triangulate well
     xyz: np.ndarray  # (n, 3) their points, in camera 1's frame
     median_angle_deg: float
+    # The frames' relative pose where one of them has several images (a rig's).
+    rig2_from_rig1: pycolmap.Rigid3d | None = None
 
 
 def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
@@ -66,11 +71,14 @@ def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray], options: 
     if options.initialization.image_id1 >= 0 or options.initialization.image_id2 >= 0:
         return _requested_pair(model, matches, options)
     candidates = sorted((pair for pair, m in matches.items()
-                         if len(m) >= options.initialization.min_num_inliers and pair not in excluded),
+                         if len(m) >= options.initialization.min_num_inliers and pair not in excluded
+                         and model.frame_id(pair[0]) != model.frame_id(pair[1])),
                         key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
     two_views = []
     for pair in candidates:
         two_view = reconstruct_pair(model, pair, matches[pair], options)
+        if two_view is not None:
+            two_view = with_frames(model, two_view, matches, options)
         if two_view is None:
             excluded.add(pair)
         else:
@@ -100,16 +108,60 @@ def _requested_pair(model: Model, matches: dict[Pair, np.ndarray],
     key = (min(id1, id2), max(id1, id2))
     if key not in matches:
         raise UserError(f"initial images {id1} and {id2} have no verified matches")
+    if model.frame_id(id1) == model.frame_id(id2):
+        raise UserError(f"initial images {id1} and {id2} are of the same frame of a rig")
     two_view = reconstruct_pair(model, key, matches[key], options)
+    if two_view is not None:
+        two_view = with_frames(model, two_view, matches, options)
     if two_view is None:
         raise UserError(f"initial images {id1} and {id2} do not give a relative pose "
                         f"with enough well-triangulated points")
     return two_view
 
 
-def initialize(model: Model, two_view: TwoViewReconstruction) -> None:
-    """Register the pair (camera 1 at the origin, unit baseline) and add its points."""
+def with_frames(model: Model, two_view: TwoViewReconstruction, matches: dict[Pair, np.ndarray],
+                options: MapperOptions) -> TwoViewReconstruction | None:
+    """The pair as it is where each image is alone in its frame; else with its frames'
+    generalized relative pose from the verified matches between all their images, or
+    None where that fails."""
     id1, id2 = two_view.pair
+    images1, images2 = model.frame_images(id1), model.frame_images(id2)
+    if len(images1) == 1 and len(images2) == 1:
+        return two_view
+    rays1, rays2, index1, index2, max_errors = [], [], [], [], []
+    for k1, a in enumerate(images1):
+        for k2, b in enumerate(images2):
+            pair_matches = matches.get((a, b)) if a < b else matches.get((b, a))
+            if pair_matches is None:
+                continue
+            kps_a, kps_b = (pair_matches[:, 0], pair_matches[:, 1]) if a < b else \
+                (pair_matches[:, 1], pair_matches[:, 0])
+            rays1.append(model.rays[a][kps_a])
+            rays2.append(model.rays[b][kps_b])
+            index1.append(np.full(len(kps_a), k1))
+            index2.append(np.full(len(kps_b), len(images1) + k2))
+            max_errors.append(options.two_view.max_error_px *
+                              pair_pixel_angles(model, a, kps_a, b, kps_b))
+    cams_from_rig = [model.cam_from_rig(i) for i in images1 + images2]
+    try:
+        result = solvers.generalized_relative_pose(
+            np.concatenate(rays1), np.concatenate(index1), np.concatenate(rays2),
+            np.concatenate(index2), cams_from_rig, max_error=np.concatenate(max_errors),
+            min_num_inliers=options.initialization.min_num_inliers, seed=options.seed)
+    except (solvers.EstimationError, ValueError):
+        return None
+    return dataclasses.replace(two_view, rig2_from_rig1=result.rig2_from_rig1)
+
+
+def initialize(model: Model, two_view: TwoViewReconstruction) -> None:
+    """Register the pair (camera 1 at the origin, unit baseline) and add its points; a
+    rig's frames (frame 1 at the origin, the rig's metric baseline) without points: the
+    pipeline triangulates all their images."""
+    id1, id2 = two_view.pair
+    if two_view.rig2_from_rig1 is not None:
+        model.register_frame(id1, pycolmap.Rigid3d())
+        model.register_frame(id2, two_view.rig2_from_rig1)
+        return
     model.register(id1, pycolmap.Rigid3d())
     model.register(id2, two_view.cam2_from_cam1)
     for (kp1, kp2), xyz in zip(two_view.matches.tolist(), two_view.xyz):

@@ -60,7 +60,7 @@ def find_similarity(target: Model, source: Model, raw_graph: dict[int, dict[int,
     """target_from_source from the two consistent cross-registrations with most inliers
     together, if they have at least `abs_pose_min_num_inliers`; else None."""
     registrations = [r for image_model, points_model in ((source, target), (target, source))
-                     for image_id in image_model.poses
+                     for image_id in image_model.registered
                      if (r := cross_register(image_model, image_id, points_model, raw_graph,
                                              options, into_target=points_model is target))]
     pairs = sorted(itertools.combinations(registrations, 2),
@@ -80,7 +80,7 @@ def cross_register(image_model: Model, image_id: int, points_model: Model,
     """P3P of an image of `image_model` on descriptor matches to the points that
     `points_model` has in the images it shares raw matches with; None if none or no pose.
     `into_target` says whether `points_model` is the target of the similarity."""
-    neighbours = [i for i in raw_graph.get(image_id, {}) if i in points_model.poses]
+    neighbours = [i for i in raw_graph.get(image_id, {}) if points_model.is_registered(i)]
     kps, point_ids = _descriptor_correspondences(image_model, image_id, points_model, neighbours,
                                                  options.guided_matching.max_descriptor_distance)
     if len(kps) < MIN_CROSS_INLIERS:
@@ -93,7 +93,7 @@ def cross_register(image_model: Model, image_id: int, points_model: Model,
             min_num_inliers=MIN_CROSS_INLIERS, seed=options.seed)
     except solvers.EstimationError:
         return None
-    own_pose, other_pose = image_model.poses[image_id], result.cam_from_world
+    own_pose, other_pose = image_model.pose(image_id), result.cam_from_world
     target_pose, source_pose = (other_pose, own_pose) if into_target else (own_pose, other_pose)
     return CrossRegistration(
         image_id, target_pose.rotation.matrix().T @ source_pose.rotation.matrix(),
@@ -148,16 +148,17 @@ def join(target: Model, source: Model, similarity: pycolmap.Sim3d,
     `similarity`, and each cross-registration's inliers observing the same point."""
     model = Model(target.db, target.nearest,
                   sorted(set(target.image_ids) | set(source.image_ids)))
-    model.fixed_image_ids = target.fixed_image_ids | source.fixed_image_ids
+    model.fixed_frame_ids = target.fixed_frame_ids | source.fixed_frame_ids
     for image_id in target.registration_order:
-        model.register(image_id, target.poses[image_id])
+        if not model.is_registered(image_id):
+            model.register(image_id, target.pose(image_id))
     for image_id in source.registration_order:
-        model.register(image_id,
-                       similarity.transform_camera_world(source.poses[image_id]))
+        if not model.is_registered(image_id):
+            model.register(image_id, similarity.transform_camera_world(source.pose(image_id)))
     target_ids = _copy_points(model, target, lambda xyz: xyz)
     source_ids = _copy_points(model, source, lambda xyz: similarity * xyz)
     for link in links:
-        new_ids = source_ids if link.image_id in target.poses else target_ids
+        new_ids = source_ids if target.is_registered(link.image_id) else target_ids
         for kp, point_id in zip(link.kps.tolist(), link.point_ids.tolist()):
             _observe(model, link.image_id, kp, new_ids[point_id])
     return model
@@ -166,21 +167,21 @@ def join(target: Model, source: Model, similarity: pycolmap.Sim3d,
 def _copy_points(model: Model, other: Model,
                  move: Callable[[np.ndarray], np.ndarray]) -> dict[int, int]:
     """Add `other`'s points (positions through `move`) to `model`; old id -> new id."""
-    return {point_id: model.add_point(move(other.xyz[point_id]), track)
-            for point_id, track in other.tracks.items()}
+    return {point_id: model.add_point(move(other.xyz[point_id]), other.track(point_id))
+            for point_id in other.point_ids}
 
 
 def _observe(model: Model, image_id: int, kp: int, point_id: int) -> None:
     """Keypoint `kp` of the image observes `point_id`: a free keypoint joins its track; a
     keypoint observing another point merges that point into it, unless their tracks
     share an image. A point merged away before is skipped."""
-    if point_id not in model.tracks or image_id in model.tracks[point_id]:
+    if not model.has_point(point_id) or image_id in model.track(point_id):
         return
     other = int(model.point_of[image_id][kp])
     if other < 0:
         model.add_observation(point_id, image_id, kp)
-    elif not set(model.tracks[other]) & set(model.tracks[point_id]):
-        track = dict(model.tracks[other])
+    elif not set(model.track(other)) & set(model.track(point_id)):
+        track = model.track(other)
         model.delete_point(other)
         for i, k in track.items():
             model.add_observation(point_id, i, k)

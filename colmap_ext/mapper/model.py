@@ -1,19 +1,26 @@
-"""The growing model: registered poses and 3D points with their tracks.
+"""The growing model: a pycolmap.Reconstruction, and what the steps derive from it.
 
-One pycolmap.Reconstruction holds the model for the whole run (`Model.reconstruction`):
-every edit below is made on it in place, and bundle adjustment solves on it directly,
-so nothing is rebuilt for a solve. Beside it, for the vectorised geometry of every
-step, live arrays per image (unit rays in any direction and the angle a pixel spans
-at each keypoint, see colmap_ext/cameras.py; uint8 SIFT descriptors; and `point_of`,
-the point each keypoint observes or -1), the points' positions in a growable (P, 3)
-array indexed by point id, and a dict per point for its track (image id -> keypoint
-index). A point keeps at least two observations, as in COLMAP: deleting one of two
-deletes the point.
+The reconstruction is the model: cameras, rigs, frames, images, poses, points and
+tracks live there alone, and change through the edits below (register, add_point,
+add_observation, delete_observation, ...), which are pycolmap's own methods. A frame
+is what gets a pose: registering an image poses its frame, and with it every image of
+the frame through the rig's `sensor_from_rig` (a database without rigs has one frame
+per image). Bundle adjustment solves on the reconstruction in place.
+
+Derived from it, for the vectorised geometry of the steps, and read-only for them:
+per image, unit rays in any direction and the angle a pixel spans at each keypoint
+(colmap_ext/cameras.py), from the reconstruction's cameras (`refresh_cameras` after
+intrinsics change); `point_of`, the point each keypoint observes or -1, an index that
+the edits keep; and `xyz`, the points' positions by point id, read again from the
+reconstruction for the points a step modified (`refresh_points`), as COLMAP's
+`modified_points3D`. A point keeps at least two observations, as in COLMAP: deleting
+one of two deletes the point.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterable
 
 import numpy as np
 import pycolmap
@@ -30,13 +37,60 @@ logger = logging.getLogger(__name__)
 NOTED_UNPROJECTABLE_PX = 10.0
 
 
+def database_reconstruction(db: DatabaseContents,
+                            image_ids: Iterable[int]) -> pycolmap.Reconstruction:
+    """A reconstruction of the database's images `image_ids` with their keypoints,
+    cameras, rigs and frames (each frame holding just the images among `image_ids`),
+    nothing posed. A database without rigs gives each camera a rig of its own and each
+    image a frame of its own."""
+    image_ids = sorted(image_ids)
+    reconstruction = pycolmap.Reconstruction()
+    if not db.frames:
+        for camera_id in sorted({db.images[i].camera_id for i in image_ids}):
+            reconstruction.add_camera_with_trivial_rig(db.cameras[camera_id])
+        for image_id in image_ids:
+            reconstruction.add_image_with_trivial_frame(_image(db, image_id))
+        return reconstruction
+    frame_ids = sorted({db.images[i].frame_id for i in image_ids})
+    rig_ids = sorted({db.frames[frame_id].rig_id for frame_id in frame_ids})
+    for rig_id in rig_ids:
+        for camera_id in db.rigs[rig_id].camera_ids:
+            if not reconstruction.exists_camera(camera_id):
+                reconstruction.add_camera(db.cameras[camera_id])
+        reconstruction.add_rig(db.rigs[rig_id].rig(rig_id))
+    wanted = set(image_ids)
+    for frame_id in frame_ids:
+        frame = pycolmap.Frame()
+        frame.frame_id, frame.rig_id = frame_id, db.frames[frame_id].rig_id
+        for other_id in db.frames[frame_id].image_ids:
+            if other_id in wanted:
+                frame.add_data_id(_image_data_id(db, other_id))
+        reconstruction.add_frame(frame)
+    for image_id in image_ids:
+        image = _image(db, image_id)
+        image.frame_id = db.images[image_id].frame_id
+        reconstruction.add_image(image)
+    return reconstruction
+
+
+def _image_data_id(db: DatabaseContents, image_id: int) -> pycolmap.data_t:
+    return pycolmap.data_t(pycolmap.sensor_t(pycolmap.SensorType.CAMERA,
+                                             db.images[image_id].camera_id), image_id)
+
+
+def _image(db: DatabaseContents, image_id: int) -> pycolmap.Image:
+    features = db.images[image_id]
+    return pycolmap.Image(name=features.name, keypoints=features.keypoints,
+                          camera_id=features.camera_id, image_id=image_id)
+
+
 class Model:
     def __init__(self, db: DatabaseContents, nearest: NearestDescriptors,
                  image_ids: list[int] | None = None) -> None:
         self.db = db
         self.nearest = nearest  # descriptor searches, shared by every model of a run
         self.image_ids = sorted(image_ids if image_ids is not None else db.images)
-        self.cameras = dict(db.cameras)  # this model's: bundle adjustment may refine them
+        self.reconstruction = database_reconstruction(db, self.image_ids)
         self.keypoints: dict[int, np.ndarray] = {}
         self.rays: dict[int, np.ndarray] = {}
         # Radians per pixel at each keypoint: a pixel threshold times this is the angle the
@@ -52,131 +106,163 @@ class Model:
         self.point_of_flat = np.full(int(starts[-1]), -1, dtype=np.int64)
         self.point_of: dict[int, np.ndarray] = {}
         for image_id, start, stop in zip(self.image_ids, starts[:-1], starts[1:]):
-            image = db.images[image_id]
-            self.keypoints[image_id] = image.keypoints
+            self.keypoints[image_id] = db.images[image_id].keypoints
             self.point_of[image_id] = self.point_of_flat[start:stop]
-            self._compute_rays(image_id)
-        self.reconstruction = pycolmap.Reconstruction()
-        for camera_id in sorted({db.images[i].camera_id for i in self.image_ids}):
-            self.reconstruction.add_camera_with_trivial_rig(self.cameras[camera_id])
-        for image_id in self.image_ids:
-            image = db.images[image_id]
-            self.reconstruction.add_image_with_trivial_frame(pycolmap.Image(
-                name=image.name, keypoints=image.keypoints, camera_id=image.camera_id,
-                image_id=image_id))
-        self.poses: dict[int, pycolmap.Rigid3d] = {}
-        self.fixed_image_ids: set[int] = set()  # poses bundle adjustment holds constant
-        self.registration_order: list[int] = []
+        self.refresh_cameras()
         self.xyz = np.zeros((1024, 3))
-        self.tracks: dict[int, dict[int, int]] = {}
+        self.fixed_frame_ids: set[int] = set()  # frames whose poses bundle adjustment holds
+        self.registration_order: list[int] = []  # image ids
         self.born: dict[int, int] = {}  # point id -> number of registered images at creation
         # Images whose observations changed since the mapper last looked (take_changed).
         self._changed: set[int] = set()
-        self._next_point_id = 1  # COLMAP's point ids start at 1
         self._noted_unprojectable = False
 
     # --- cameras ----------------------------------------------------------------
     def camera(self, image_id: int) -> pycolmap.Camera:
-        return self.cameras[self.db.images[image_id].camera_id]
+        return self.reconstruction.cameras[self.db.images[image_id].camera_id]
 
     def has_rays(self, image_id: int, kps: np.ndarray) -> np.ndarray:
         """Whether the camera model gives each keypoint a ray (solvers take no others)."""
         return np.isfinite(self.pixel_angles[image_id][kps])
 
-    def set_camera(self, camera_id: int, camera: pycolmap.Camera) -> None:
-        """New intrinsics for a camera, and the rays of its images from them."""
-        self.cameras[camera_id] = camera
-        self.reconstruction.cameras[camera_id].params = camera.params
+    def refresh_cameras(self) -> None:
+        """The rays and pixel angles of every image from the reconstruction's cameras."""
         for image_id in self.image_ids:
-            if self.db.images[image_id].camera_id == camera_id:
-                self._compute_rays(image_id)
+            camera, keypoints = self.camera(image_id), self.keypoints[image_id]
+            ray = rays(camera, keypoints)
+            angles = pixel_angles(camera, keypoints)
+            angles[~np.isfinite(ray).all(axis=1)] = np.nan
+            ray[~np.isfinite(angles)] = (0.0, 0.0, 1.0)
+            self.rays[image_id] = ray
+            self.pixel_angles[image_id] = angles
 
-    def _compute_rays(self, image_id: int) -> None:
-        camera, keypoints = self.camera(image_id), self.keypoints[image_id]
-        ray = rays(camera, keypoints)
-        angles = pixel_angles(camera, keypoints)
-        angles[~np.isfinite(ray).all(axis=1)] = np.nan
-        ray[~np.isfinite(angles)] = (0.0, 0.0, 1.0)
-        self.rays[image_id] = ray
-        self.pixel_angles[image_id] = angles
-
-    def register(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
-        self.set_pose(image_id, cam_from_world)
-        self.reconstruction.register_frame(self._frame_id(image_id))
-        self.registration_order.append(image_id)
-        self._changed.add(image_id)
-
-    def set_pose(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> None:
-        self.poses[image_id] = cam_from_world
-        self.reconstruction.frames[self._frame_id(image_id)].rig_from_world = cam_from_world
-
-    def _frame_id(self, image_id: int) -> int:
+    # --- frames and poses -------------------------------------------------------
+    def frame_id(self, image_id: int) -> int:
         return self.reconstruction.images[image_id].frame_id
 
-    def deregister(self, image_id: int) -> None:
-        """Remove an image's pose and its observations (a point left with one goes)."""
-        _, point_ids = self.observations(image_id)
-        for point_id in point_ids.tolist():
-            self.delete_observation(point_id, image_id)
-        self.reconstruction.deregister_frame(self._frame_id(image_id))
-        del self.poses[image_id]
-        self.registration_order.remove(image_id)
-        self._changed.add(image_id)
+    def frame_images(self, image_id: int) -> list[int]:
+        """The images of `image_id`'s frame (itself among them), in this model."""
+        frame = self.reconstruction.frames[self.frame_id(image_id)]
+        return sorted(data_id.id for data_id in frame.image_ids)
+
+    def is_registered(self, image_id: int) -> bool:
+        """Whether the image is one of this model's and has a pose."""
+        images = self.reconstruction.images
+        return image_id in images and images[image_id].has_pose
+
+    @property
+    def registered(self) -> list[int]:
+        """The registered images' ids."""
+        return sorted(self.reconstruction.reg_image_ids())
 
     @property
     def num_registered(self) -> int:
-        return len(self.poses)
+        return self.reconstruction.num_reg_images()
+
+    def pose(self, image_id: int) -> pycolmap.Rigid3d:
+        """cam_from_world of a registered image (its frame's pose through the rig)."""
+        return self.reconstruction.images[image_id].cam_from_world()
+
+    def centre(self, image_id: int) -> np.ndarray:
+        return self.reconstruction.images[image_id].projection_center()
+
+    def cam_from_rig(self, image_id: int) -> pycolmap.Rigid3d:
+        """The image's camera pose in its frame's rig (identity for the reference camera)."""
+        rig = self.reconstruction.rigs[self.reconstruction.frames[self.frame_id(image_id)].rig_id]
+        sensor = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, self.db.images[image_id].camera_id)
+        return pycolmap.Rigid3d() if rig.is_ref_sensor(sensor) else rig.sensor_from_rig(sensor)
+
+    def register(self, image_id: int, cam_from_world: pycolmap.Rigid3d) -> list[int]:
+        """Pose the image's frame so that the image has `cam_from_world`, and register it.
+        Returns the frame's images, now all registered."""
+        frame = self.reconstruction.frames[self.frame_id(image_id)]
+        frame.set_cam_from_world(self.db.images[image_id].camera_id, cam_from_world)
+        return self.register_frame(image_id, frame.rig_from_world)
+
+    def register_frame(self, image_id: int, rig_from_world: pycolmap.Rigid3d) -> list[int]:
+        """Pose and register the frame of `image_id`. Returns its images, now registered."""
+        frame_id = self.frame_id(image_id)
+        self.reconstruction.frames[frame_id].rig_from_world = rig_from_world
+        self.reconstruction.register_frame(frame_id)
+        images = self.frame_images(image_id)
+        self.registration_order.extend(images)
+        self._changed.update(images)
+        return images
+
+    def deregister(self, image_id: int) -> None:
+        """Remove the pose of the image's frame and the observations of its images (a
+        point left with one goes)."""
+        images = self.frame_images(image_id)
+        for other_id in images:
+            for kp in self.observations(other_id)[0].tolist():
+                self.delete_observation(other_id, kp)
+        self.reconstruction.deregister_frame(self.frame_id(image_id))
+        for other_id in images:
+            self.registration_order.remove(other_id)
+        self._changed.update(images)
 
     # --- points -----------------------------------------------------------------
     def add_point(self, xyz: np.ndarray, track: dict[int, int]) -> int:
-        point_id = self._next_point_id
-        self._next_point_id += 1
-        if point_id >= len(self.xyz):
+        point_id = self.reconstruction.add_point3D(
+            xyz, pycolmap.Track([pycolmap.TrackElement(image_id, kp)
+                                 for image_id, kp in track.items()]))
+        while point_id >= len(self.xyz):
             self.xyz = np.vstack([self.xyz, np.zeros_like(self.xyz)])
         self.xyz[point_id] = xyz
-        self.tracks[point_id] = dict(track)
         self.born[point_id] = self.num_registered
-        point = pycolmap.Point3D()
-        point.xyz = self.xyz[point_id]
-        point.track = pycolmap.Track([pycolmap.TrackElement(image_id, kp)
-                                      for image_id, kp in track.items()])
-        self.reconstruction.add_point3D_with_id(point_id, point)
         for image_id, kp in track.items():
             self.point_of[image_id][kp] = point_id
         self._changed.update(track)
         return point_id
 
     def add_observation(self, point_id: int, image_id: int, kp: int) -> None:
-        self.tracks[point_id][image_id] = kp
-        self.point_of[image_id][kp] = point_id
         self.reconstruction.add_observation(point_id, pycolmap.TrackElement(image_id, kp))
+        self.point_of[image_id][kp] = point_id
         self._changed.add(image_id)
 
-    def delete_observation(self, point_id: int, image_id: int) -> None:
-        """Delete one observation; of a point's last two, the point (COLMAP's rule)."""
-        if len(self.tracks[point_id]) <= 2:
+    def delete_observation(self, image_id: int, kp: int) -> None:
+        """Delete keypoint `kp`'s observation; of a point's last two, the point (COLMAP's rule)."""
+        point_id = int(self.point_of[image_id][kp])
+        if self.track_length(point_id) <= 2:
             self.delete_point(point_id)
             return
-        kp = self.tracks[point_id].pop(image_id)
-        self.point_of[image_id][kp] = -1
         self.reconstruction.delete_observation(image_id, kp)
+        self.point_of[image_id][kp] = -1
         self._changed.add(image_id)
 
     def delete_point(self, point_id: int) -> None:
-        track = self.tracks.pop(point_id)
+        track = self.track(point_id)
         for image_id, kp in track.items():
             self.point_of[image_id][kp] = -1
         self._changed.update(track)
         del self.born[point_id]
         self.reconstruction.delete_point3D(point_id)
 
+    def has_point(self, point_id: int) -> bool:
+        return self.reconstruction.exists_point3D(point_id)
+
+    @property
+    def point_ids(self) -> list[int]:
+        return list(self.reconstruction.point3D_ids())
+
+    def track(self, point_id: int) -> dict[int, int]:
+        """The point's observations: image id -> keypoint index."""
+        return {element.image_id: element.point2D_idx
+                for element in self.reconstruction.points3D[point_id].track.elements}
+
+    def track_length(self, point_id: int) -> int:
+        return self.reconstruction.points3D[point_id].track.length()
+
+    def refresh_points(self, point_ids: Iterable[int]) -> None:
+        """Read the positions of `point_ids` (a step moved them) into `xyz`."""
+        points = self.reconstruction.points3D
+        for point_id in point_ids:
+            self.xyz[point_id] = points[point_id].xyz
+
     def transform(self, similarity: pycolmap.Sim3d) -> None:
         """Move every pose and point by a similarity."""
-        for image_id, pose in list(self.poses.items()):
-            self.set_pose(image_id, similarity.transform_camera_world(pose))
-        for point_id in self.tracks:
-            self.xyz[point_id] = similarity * self.xyz[point_id]
-            self.reconstruction.points3D[point_id].xyz = self.xyz[point_id]
+        self.reconstruction.transform(similarity)
+        self.refresh_points(self.point_ids)
 
     def take_changed(self) -> set[int]:
         """The images registered, deregistered or whose observations changed since the
@@ -196,7 +282,7 @@ class Model:
         or more from the ray (behind it), or where the camera model cannot project the
         point (a fisheye's directions at 90 degrees or more from its axis): bundle
         adjustment could not take such an observation."""
-        pose = self.poses[image_id].matrix()
+        pose = self.pose(image_id).matrix()
         x_cam = xyz @ pose[:, :3].T + pose[:, 3]
         ray = self.rays[image_id][kps]
         along = np.einsum("ij,ij->i", x_cam, ray)
@@ -223,15 +309,22 @@ class Model:
                            "later ones are left out without a word", count, image_id,
                            self.camera(image_id).model.name)
 
-    def centre(self, image_id: int) -> np.ndarray:
-        return self.poses[image_id].inverse().translation
-
     def covisible_images(self, image_id: int) -> dict[int, int]:
         """Registered images sharing points with `image_id`, with the number shared."""
         _, point_ids = self.observations(image_id)
         counts: dict[int, int] = {}
-        for point_id in point_ids:
-            for other in self.tracks[point_id]:
+        points = self.reconstruction.points3D
+        for point_id in point_ids.tolist():
+            for element in points[point_id].track.elements:
+                other = element.image_id
                 if other != image_id:
                     counts[other] = counts.get(other, 0) + 1
         return counts
+
+    def export(self) -> pycolmap.Reconstruction:
+        """A copy of the model with its registered images alone (COLMAP's TearDown),
+        point ids kept and their errors computed."""
+        reconstruction = pycolmap.Reconstruction(self.reconstruction)
+        reconstruction.tear_down()
+        reconstruction.update_point_3d_errors()
+        return reconstruction

@@ -219,6 +219,9 @@ class BundleAdjustmentOptions:
     refine_extra_params: bool = False
     # Cameras whose intrinsics stay constant when the others are refined.
     constant_camera_ids: tuple[int, ...] = ()
+    # Refine the poses of a rig's cameras relative to the rig (the method holds the
+    # calibrated rig constant).
+    refine_sensor_from_rig: bool = False
 
     @property
     def refines_intrinsics(self) -> bool:

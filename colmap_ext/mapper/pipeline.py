@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from colmap_ext.database import DatabaseContents, read_database
 from colmap_ext.errors import UserError
-from colmap_ext.mapper.bundle_adjustment import bundle_adjust, posed_images
+from colmap_ext.mapper.bundle_adjustment import bundle_adjust
 from colmap_ext.mapper.descriptors import NearestDescriptors
 from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
@@ -26,8 +26,9 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 from colmap_ext.mapper.filtering import (error_limit, filter_images, filter_points,
                                           median_reprojection_error)
-from colmap_ext.mapper.registration import (Outcome, descriptor_correspondences,
-                                            register_image, track_correspondences)
+from colmap_ext.mapper.registration import (Correspondences, Outcome,
+                                            descriptor_correspondences, register_frame,
+                                            track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
@@ -87,7 +88,7 @@ class IncrementalMapper:
     def run(self, excluded_pairs: set[Pair]) -> bool:
         """Reconstruct from the best initial pair, or go on from the model's registered
         images when it has some (a continued model); False when no pair initialises."""
-        if self.model.poses:
+        if self.model.num_registered:
             self.num_images_at_global_ba = self.model.num_registered
             self._advance(self.model.num_registered)
         elif not self._initialize(excluded_pairs):
@@ -98,7 +99,7 @@ class IncrementalMapper:
             self._global_adjustment(final=True)
         else:
             with self.timer("filtering"):
-                filter_points(self.model, list(self.model.poses), self.options, final=True)
+                filter_points(self.model, self.model.registered, self.options, final=True)
         return True
 
     def _initialize(self, excluded_pairs: set[Pair]) -> bool:
@@ -107,11 +108,16 @@ class IncrementalMapper:
         if two_view is None:
             return False
         initialize(self.model, two_view)
-        id1, id2 = two_view.pair
         with self.timer("triangulation"):
-            triangulate_image(self.model, id2, [id1], self.options, min_views=2)
+            # Every image of the second frame against every image of both frames (a
+            # rig's other cameras see across its baseline too).
+            registered = self.model.registered
+            for image_id in self.model.frame_images(two_view.pair[1]):
+                triangulate_image(self.model, image_id,
+                                  [other for other in registered if other != image_id],
+                                  self.options, min_views=2)
         self._global_adjustment()
-        self._advance(2)
+        self._advance(self.model.num_registered)
         return True
 
     def refine_joined(self) -> None:
@@ -123,7 +129,7 @@ class IncrementalMapper:
         num_images = self.options.guided_matching.num_images
         for _ in range(self.options.merging.refinement_rounds):
             with self.timer("triangulation"):
-                for image_id in list(self.model.poses):
+                for image_id in self.model.registered:
                     triangulate_image(self.model, image_id,
                                       self._neighbours(image_id, num_images),
                                       self.options, min_views=2)
@@ -137,14 +143,14 @@ class IncrementalMapper:
         (filtering.error_limit), which leaves out the near-miss matches. Returns the
         number of points."""
         model, options = self.model, self.options
-        registered = list(model.poses)
+        registered = model.registered
         limit = error_limit(options.triangulation.max_reproj_error_px,
                             median_reprojection_error(model, registered), options,
                             options.triangulation.retriangulation_max_error_ratio)
         strict = dataclasses.replace(options, triangulation=dataclasses.replace(
             options.triangulation, max_reproj_error_px=limit))
         with self.timer("triangulation"):
-            for point_id in list(model.tracks):
+            for point_id in model.point_ids:
                 model.delete_point(point_id)
             for image_id in model.registration_order:
                 triangulate_image(model, image_id,
@@ -156,7 +162,7 @@ class IncrementalMapper:
             filter_points(model, registered, options, final=True)
         # One round: the observations are fresh, and a second changed nothing measured.
         self._global_adjustment(final=True, rounds=1)
-        return len(model.tracks)
+        return model.reconstruction.num_points3D()
 
     def _advance(self, n: int) -> None:
         if self.progress is not None:
@@ -166,22 +172,29 @@ class IncrementalMapper:
         """Unregistered images to try, best first, in the configured order."""
         model = self.model
         changed = model.take_changed()
-        for image_id in changed & set(model.poses):
+        registered = model.registered
+        for image_id in changed.intersection(registered):
             self._connected.update(self.raw_graph.get(image_id, {}))
-        unregistered = [i for i in model.image_ids if i not in model.poses
+        is_registered = np.zeros(max(model.image_ids) + 1, bool)
+        is_registered[registered] = True
+        unregistered = [i for i in model.image_ids if not is_registered[i]
                         and self.trials[i] < self.options.registration.max_trials
                         and i in self._connected]
-        is_registered = np.zeros(max(model.image_ids) + 1, bool)
-        is_registered[list(model.poses)] = True
         for i in unregistered:
             if i not in self._visible or not changed.isdisjoint(self.graph.get(i, {})):
                 self._visible[i] = self._count_visible(i, is_registered)
         visible = self._visible
         if self.options.registration.order == "sequence":
-            registered = np.array([self.sequence_index[i] for i in model.poses])
-            distance = {i: np.abs(registered - self.sequence_index[i]).min() for i in unregistered}
-            return sorted(unregistered, key=lambda i: (distance[i], -visible[i]))
-        return sorted(unregistered, key=lambda i: (-visible[i], self.sequence_index[i]))
+            indices = np.array([self.sequence_index[i] for i in registered])
+            distance = {i: np.abs(indices - self.sequence_index[i]).min() for i in unregistered}
+            ordered = sorted(unregistered, key=lambda i: (distance[i], -visible[i]))
+        else:
+            ordered = sorted(unregistered, key=lambda i: (-visible[i], self.sequence_index[i]))
+        # One image a frame: registering it registers the frame.
+        frames = {}
+        for image_id in ordered:
+            frames.setdefault(model.frame_id(image_id), image_id)
+        return list(frames.values())
 
     def _count_visible(self, image_id: int, is_registered: np.ndarray) -> int:
         """Model points an image sees through its verified matches to registered images
@@ -203,9 +216,11 @@ class IncrementalMapper:
     def _neighbours(self, image_id: int, limit: int) -> list[int]:
         """Registered images most connected to `image_id`: shared points, then matches."""
         model = self.model
-        shared = model.covisible_images(image_id) if image_id in model.poses else {}
-        verified = {o: len(m) for o, m in self.graph.get(image_id, {}).items() if o in model.poses}
-        raw = {o: len(m) for o, m in self.raw_graph.get(image_id, {}).items() if o in model.poses}
+        shared = model.covisible_images(image_id) if model.is_registered(image_id) else {}
+        verified = {o: len(m) for o, m in self.graph.get(image_id, {}).items()
+                    if model.is_registered(o)}
+        raw = {o: len(m) for o, m in self.raw_graph.get(image_id, {}).items()
+               if model.is_registered(o)}
         others = set(shared) | set(verified) or set(raw)
         return sorted(others, key=lambda o: (
             -shared.get(o, 0), -verified.get(o, 0), -raw.get(o, 0)))[:limit]
@@ -218,7 +233,7 @@ class IncrementalMapper:
                 self.trials[image_id] += 1
                 continue
             self._after_registration(image_id)
-            self._advance(1)
+            self._advance(len(self.model.frame_images(image_id)))
             self._write_snapshot()
             self.trials.clear()  # the model has grown: failed images deserve a new chance
             return True
@@ -235,42 +250,47 @@ class IncrementalMapper:
             folder = Path(options.snapshot_path) / f"{int(time.time() * 1000):013d}"
             try:
                 folder.mkdir(parents=True, exist_ok=True)
-                export(self.model).write_binary(folder)
+                self.model.export().write_binary(folder)
             except (OSError, ValueError, RuntimeError) as exc:
                 raise UserError(f"cannot write a snapshot to {folder}: "
                                 f"{getattr(exc, 'strerror', None) or exc}") from None
 
     def _register(self, image_id: int) -> bool:
-        """P3P on correspondences through verified matches and descriptor matches to
-        nearby points. A pose off the verified matches' epipolar lines is tried again
-        through verified matches alone (descriptor matches on repeated texture can pull
-        it away); too few inliers, through raw matches too (pairs whose two-view
-        verification failed can still hold enough inliers for an absolute pose)."""
+        """Register the image's frame: P3P (GP3P for a rig's frame) on correspondences
+        through verified matches and descriptor matches to nearby points. A pose off the
+        verified matches' epipolar lines is tried again through verified matches alone
+        (descriptor matches on repeated texture can pull it away); too few inliers,
+        through raw matches too (pairs whose two-view verification failed can still hold
+        enough inliers for an absolute pose)."""
         model, options = self.model, self.options
-        neighbours = self._neighbours(image_id, options.guided_matching.num_images)
-        descriptor = descriptor_correspondences(model, image_id, neighbours, options)
-        verified = track_correspondences(model, image_id, self.graph)
-        outcome = register_image(model, image_id, *_joined(descriptor, verified), self.graph,
-                                 options)
+        image_ids = model.frame_images(image_id)
+        descriptor = {i: descriptor_correspondences(
+            model, i, self._neighbours(i, options.guided_matching.num_images), options)
+            for i in image_ids}
+        verified = {i: track_correspondences(model, i, self.graph) for i in image_ids}
+        outcome = register_frame(model, _joined(descriptor, verified), self.graph, options)
         if outcome is Outcome.INCONSISTENT:
-            outcome = register_image(model, image_id, *verified, self.graph, options)
+            outcome = register_frame(model, verified, self.graph, options)
         elif outcome is Outcome.TOO_FEW_INLIERS:
-            raw = track_correspondences(model, image_id, self.raw_graph)
-            if len(raw[0]):
-                outcome = register_image(model, image_id, *_joined(descriptor, verified, raw),
-                                         self.graph, options)
+            raw = {i: track_correspondences(model, i, self.raw_graph) for i in image_ids}
+            if any(len(kps) for kps, _ in raw.values()):
+                outcome = register_frame(model, _joined(descriptor, verified, raw), self.graph,
+                                         options)
         return outcome is Outcome.REGISTERED
 
     def _after_registration(self, image_id: int) -> None:
         options = self.options
+        image_ids = self.model.frame_images(image_id)
         with self.timer("triangulation"):
-            neighbours = self._neighbours(image_id, options.guided_matching.num_images)
-            triangulate_image(self.model, image_id, neighbours, options, min_views=2)
+            for new_id in image_ids:
+                neighbours = self._neighbours(new_id, options.guided_matching.num_images)
+                triangulate_image(self.model, new_id, neighbours, options, min_views=2)
         ratio = options.bundle_adjustment.global_images_ratio
         if self.model.num_registered >= ratio * self.num_images_at_global_ba:
             self._global_adjustment()
             return
-        local = [image_id] + self._neighbours(image_id, options.bundle_adjustment.local_num_images)
+        local = image_ids + [other for other in self._neighbours(
+            image_id, options.bundle_adjustment.local_num_images) if other not in image_ids]
         self._bundle_adjust(local, options.bundle_adjustment.local_max_iterations)
         with self.timer("filtering"):
             filter_points(self.model, local, options)
@@ -283,7 +303,7 @@ class IncrementalMapper:
         observations or the final loss is not the robust one."""
         model, options = self.model, self.options
         ba = options.bundle_adjustment
-        registered = list(model.poses)
+        registered = model.registered
         ratio = options.filtering.final_max_error_ratio if final else 0.0
         for _ in range(rounds if final else 1):
             with self.timer("filtering"):
@@ -307,10 +327,11 @@ class IncrementalMapper:
         self.timer.counts["bundle adjustment iterations"] += iterations
 
 
-def _joined(*correspondences: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-    """(keypoints, point ids) of several correspondence sets, one after the other."""
-    return (np.concatenate([kps for kps, _ in correspondences]),
-            np.concatenate([point_ids for _, point_ids in correspondences]))
+def _joined(*correspondences: Correspondences) -> Correspondences:
+    """Per image, (keypoints, point ids) of several correspondence sets, one after the other."""
+    return {image_id: (np.concatenate([c[image_id][0] for c in correspondences]),
+                       np.concatenate([c[image_id][1] for c in correspondences]))
+            for image_id in correspondences[0]}
 
 
 def reconstruct(db: DatabaseContents, options: MapperOptions,
@@ -351,7 +372,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
                 models.append(model)
             else:
                 timer.counts["models below min_model_size"] += 1
-            remaining = [i for i in remaining if i not in model.poses]
+            remaining = [i for i in remaining if not model.is_registered(i)]
             model = Model(db, nearest, remaining)
             options = options.choosing_initial_pair()
             matches = {p: m for p, m in matches.items() if p[0] in remaining and p[1] in remaining}
@@ -368,7 +389,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
         m.num_registered < options.min_model_size for m in models)
     models = [m for m in models if m.num_registered >= options.min_model_size]
     with timer("export"):
-        reconstructions = [export(model) for model in models]
+        reconstructions = [model.export() for model in models]
     return sorted(reconstructions, key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
 
 
@@ -377,7 +398,7 @@ def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: 
     """Join models two at a time while a pair of them gives a similarity (merging.py),
     the larger one as the target, and adjust each joined model; largest first."""
     # The larger model is the target, unless the other holds fixed poses (a continued model).
-    models = sorted(models, key=lambda model: (not model.fixed_image_ids, -model.num_registered))
+    models = sorted(models, key=lambda model: (not model.fixed_frame_ids, -model.num_registered))
     if len(models) < 2:
         return models
     raw_graph = pair_graph(models[0].db.raw_matches)
@@ -393,7 +414,7 @@ def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: 
             joined = join(target, source, *found)
         _refiner(joined, matches, options, timer).refine_joined()
         models = sorted([m for m in models if m is not target and m is not source] + [joined],
-                        key=lambda model: (not model.fixed_image_ids, -model.num_registered))
+                        key=lambda model: (not model.fixed_frame_ids, -model.num_registered))
 
 
 def _refiner(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
@@ -431,9 +452,10 @@ def _continue_from(model: Model, existing: pycolmap.Reconstruction, image_ids: d
     """Put the registered images and the points of `existing` into the empty `model`
     (input image id -> database image id: `image_ids`)."""
     for input_id, image_id in image_ids.items():
-        model.register(image_id, existing.images[input_id].cam_from_world())
+        if not model.is_registered(image_id):
+            model.register(image_id, existing.images[input_id].cam_from_world())
     if fix_poses:
-        model.fixed_image_ids = set(image_ids.values())
+        model.fixed_frame_ids = {model.frame_id(image_id) for image_id in image_ids.values()}
     for point in existing.points3D.values():
         track = {image_ids[element.image_id]: element.point2D_idx
                  for element in point.track.elements if element.image_id in image_ids}
@@ -449,16 +471,6 @@ def _select_images(db, image_names: list[str] | None) -> list[int]:
     if missing:
         raise UserError(f"images in the image list are not in the database: {', '.join(missing[:5])}")
     return sorted(by_name[name] for name in image_names)
-
-
-def export(model: Model) -> pycolmap.Reconstruction:
-    """The model as a pycolmap.Reconstruction of its registered images alone (the
-    model's own also holds the images not registered), point ids kept."""
-    reconstruction = posed_images(model.db, model.cameras, dict(sorted(model.poses.items())))
-    for point_id, point in model.reconstruction.points3D.items():
-        reconstruction.add_point3D_with_id(point_id, point)
-    reconstruction.update_point_3d_errors()
-    return reconstruction
 
 
 def run(database_path: str | Path, image_path: str | Path, output_path: str | Path,

@@ -1,6 +1,6 @@
-"""Registration of the next image (paper, steps 4a-4b): 2D-3D correspondences with
-the model's points, then P3P RANSAC (OpenGV) refined on the inliers; the pose must keep
-the image's verified matches on their epipolar lines."""
+"""Registration of the next frame (paper, steps 4a-4b): 2D-3D correspondences of its
+images with the model's points, then P3P RANSAC (GP3P for a rig's frame; OpenGV) refined
+on the inliers; the pose must keep the images' verified matches on their epipolar lines."""
 
 from __future__ import annotations
 
@@ -33,7 +33,7 @@ def track_correspondences(model: Model, image_id: int,
     """(keypoints, point ids) through verified matches to registered images' points."""
     kps, point_ids = [], []
     for other_id, matches in graph.get(image_id, {}).items():
-        if other_id in model.poses:
+        if model.is_registered(other_id):
             points = model.point_of[other_id][matches[:, 1]]
             has_point = points >= 0
             kps.append(matches[has_point, 0])
@@ -64,67 +64,93 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
     return np.concatenate(kps), np.concatenate(point_ids)
 
 
-def register_image(model: Model, image_id: int, kps: np.ndarray, point_ids: np.ndarray,
-                   graph: dict[int, dict[int, np.ndarray]], options: MapperOptions) -> Outcome:
-    """Estimate the image's pose from 2D-3D correspondences and add its inliers to the
-    points' tracks (one keypoint per point, the one reprojecting closest).
+Correspondences = dict[int, tuple[np.ndarray, np.ndarray]]  # image id -> (keypoints, point ids)
 
-    The pose must also keep the image's verified matches (`graph`) to registered images
+
+def register_frame(model: Model, correspondences: Correspondences,
+                   graph: dict[int, dict[int, np.ndarray]], options: MapperOptions) -> Outcome:
+    """Estimate the pose of a frame from the 2D-3D correspondences of its images (P3P for
+    an image alone in its frame, GP3P for a rig's images, both OpenGV's, refined on the
+    inliers), then add the inliers to the points' tracks (per image, one keypoint per
+    point, the one reprojecting closest).
+
+    The pose must also keep the images' verified matches (`graph`) to registered images
     on their epipolar lines (epipolar_support): on repeated texture, wrong
     correspondences can agree on a wrong pose with more inliers than the right one."""
     registration = options.registration
-    pairs = np.unique(np.stack([kps, point_ids], axis=1), axis=0) if len(kps) else \
-        np.zeros((0, 2), np.int64)
-    pairs = pairs[model.has_rays(image_id, pairs[:, 0])]
+    pairs_of = {}
+    for image_id, (kps, point_ids) in correspondences.items():
+        pairs = np.unique(np.stack([kps, point_ids], axis=1), axis=0) if len(kps) else \
+            np.zeros((0, 2), np.int64)
+        pairs_of[image_id] = pairs[model.has_rays(image_id, pairs[:, 0])]
+    image_ids = list(pairs_of)
+    pairs = np.concatenate(list(pairs_of.values()))
     if len(pairs) < max(4, registration.abs_pose_min_num_inliers):
         return Outcome.TOO_FEW_INLIERS
+    camera_index = np.repeat(np.arange(len(image_ids)), [len(p) for p in pairs_of.values()])
+    rays = np.concatenate([model.rays[i][p[:, 0]] for i, p in pairs_of.items()])
+    max_error = registration.abs_pose_max_error_px * np.concatenate(
+        [model.pixel_angles[i][p[:, 0]] for i, p in pairs_of.items()])
+    cams_from_rig = [model.cam_from_rig(image_id) for image_id in image_ids]
     try:
-        result = solvers.absolute_pose(
-            model.rays[image_id][pairs[:, 0]], model.xyz[pairs[:, 1]],
-            max_error=registration.abs_pose_max_error_px *
-            model.pixel_angles[image_id][pairs[:, 0]],
-            min_num_inliers=registration.abs_pose_min_num_inliers, seed=options.seed)
+        if len(image_ids) == 1:
+            result = solvers.absolute_pose(
+                rays, model.xyz[pairs[:, 1]], max_error=max_error,
+                min_num_inliers=registration.abs_pose_min_num_inliers, seed=options.seed)
+            rig_from_world = cams_from_rig[0].inverse() * result.cam_from_world
+        else:
+            result = solvers.generalized_absolute_pose(
+                rays, camera_index, model.xyz[pairs[:, 1]], cams_from_rig, max_error=max_error,
+                min_num_inliers=registration.abs_pose_min_num_inliers, seed=options.seed)
+            rig_from_world = result.rig_from_world
     except solvers.EstimationError:
         return Outcome.TOO_FEW_INLIERS
-    if result.num_inliers < registration.abs_pose_min_inlier_ratio * len(np.unique(pairs[:, 0])):
+    num_keypoints = sum(len(np.unique(p[:, 0])) for p in pairs_of.values())
+    if result.num_inliers < registration.abs_pose_min_inlier_ratio * num_keypoints:
         return Outcome.TOO_FEW_INLIERS
-    if epipolar_support(model, image_id, result.cam_from_world, graph, options) < \
+    cams_from_world = [cam_from_rig * rig_from_world for cam_from_rig in cams_from_rig]
+    if epipolar_support(model, dict(zip(image_ids, cams_from_world)), graph, options) < \
             registration.min_epipolar_support:
         return Outcome.INCONSISTENT
-    _add_inliers(model, image_id, result.cam_from_world, pairs[result.inlier_mask], options)
+    model.register_frame(image_ids[0], rig_from_world)
+    for k, image_id in enumerate(image_ids):
+        _add_inliers(model, image_id, pairs[result.inlier_mask & (camera_index == k)], options)
     return Outcome.REGISTERED
 
 
-def _add_inliers(model: Model, image_id: int, cam_from_world: pycolmap.Rigid3d,
-                 inliers: np.ndarray, options: MapperOptions) -> None:
-    """Register the image and add its (keypoint, point id) inliers to the tracks."""
-    model.register(image_id, cam_from_world)
+def _add_inliers(model: Model, image_id: int, inliers: np.ndarray,
+                 options: MapperOptions) -> None:
+    """Add a registered image's (keypoint, point id) inliers to the tracks."""
     kps, point_ids = inliers[:, 0], inliers[:, 1]
     errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
+    observed = set(model.observations(image_id)[1].tolist())
     for i in np.argsort(errors, kind="stable"):
         kp, point_id = int(kps[i]), int(point_ids[i])
-        if model.point_of[image_id][kp] < 0 and image_id not in model.tracks[point_id] \
+        if model.point_of[image_id][kp] < 0 and point_id not in observed \
                 and errors[i] <= options.registration.abs_pose_max_error_px:
             model.add_observation(point_id, image_id, kp)
+            observed.add(point_id)
 
 
-def epipolar_support(model: Model, image_id: int, cam_from_world: pycolmap.Rigid3d,
+def epipolar_support(model: Model, cams_from_world: dict[int, pycolmap.Rigid3d],
                      graph: dict[int, dict[int, np.ndarray]], options: MapperOptions) -> float:
-    """The fraction of the image's verified matches to registered images that the pose
-    keeps within abs_pose_max_error_px of their epipolar lines (1 without such matches).
+    """The fraction of the images' verified matches to registered images that the poses
+    `cams_from_world` (image id -> pose) keep within abs_pose_max_error_px of their
+    epipolar lines (1 without such matches).
 
     Verified matches are true far more often than the pair's own relative pose is right
     (near-planar pairs), so they check a pose where 2D-3D inliers alone cannot."""
     max_error_px = options.registration.abs_pose_max_error_px
     consistent = total = 0
-    for other_id, matches in graph.get(image_id, {}).items():
-        if other_id not in model.poses:
-            continue
-        E = pycolmap.essential_matrix_from_pose(model.poses[other_id] * cam_from_world.inverse())
-        errors = sampson_angles(E, model.rays[image_id][matches[:, 0]],
-                                model.rays[other_id][matches[:, 1]])
-        max_errors = max_error_px * pair_pixel_angles(model, image_id, matches[:, 0], other_id,
-                                                      matches[:, 1])
-        consistent += int(np.count_nonzero(errors <= max_errors))
-        total += len(matches)
+    for image_id, cam_from_world in cams_from_world.items():
+        for other_id, matches in graph.get(image_id, {}).items():
+            if not model.is_registered(other_id):
+                continue
+            E = pycolmap.essential_matrix_from_pose(model.pose(other_id) * cam_from_world.inverse())
+            errors = sampson_angles(E, model.rays[image_id][matches[:, 0]],
+                                    model.rays[other_id][matches[:, 1]])
+            max_errors = max_error_px * pair_pixel_angles(model, image_id, matches[:, 0],
+                                                          other_id, matches[:, 1])
+            consistent += int(np.count_nonzero(errors <= max_errors))
+            total += len(matches)
     return consistent / total if total else 1.0

@@ -32,11 +32,12 @@ def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple
                    options: MapperOptions) -> int:
     """Keypoints compatible with an observation of an existing point join its track
     when the point reprojects onto them (one keypoint per point, the closest)."""
+    observed = set(model.observations(image_id)[1].tolist())
     kps, point_ids = [], []
     for kp, matches in candidates.items():
         for other_id, other_kp in matches:
             point_id = model.point_of[other_id][other_kp]
-            if point_id >= 0 and image_id not in model.tracks[point_id]:
+            if point_id >= 0 and point_id not in observed:
                 kps.append(kp)
                 point_ids.append(point_id)
     if not kps:
@@ -48,8 +49,9 @@ def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple
     added = 0
     for i in np.argsort(errors, kind="stable"):
         kp, point_id = int(kps[i]), int(point_ids[i])
-        if model.point_of[image_id][kp] < 0 and image_id not in model.tracks[point_id]:
+        if model.point_of[image_id][kp] < 0 and point_id not in observed:
             model.add_observation(point_id, image_id, kp)
+            observed.add(point_id)
             added += 1
     return added
 
@@ -91,7 +93,7 @@ def triangulate_tracks(model: Model, tracks: list[dict[int, int]],
             views.append(view_of[image_id])
             points.append(p)
             rays.append(model.rays[image_id][kp])
-    return solvers.triangulate_tracks([model.poses[i] for i in image_ids], np.array(views),
+    return solvers.triangulate_tracks([model.pose(i) for i in image_ids], np.array(views),
                                       np.array(points), np.array(rays), num_points=len(tracks),
                                       min_angle_deg=options.triangulation.min_tri_angle_deg)
 
