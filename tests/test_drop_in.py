@@ -108,6 +108,15 @@ def test_colmap4_names_of_our_options(tmp_path):
         mapper_options({"Mapper.constant_camera_list_path": str(cameras)})
     with pytest.raises(UserError, match="cannot read camera list"):
         mapper_options({"Mapper.constant_camera_list_path": str(tmp_path / "missing.txt")})
+    rigs = tmp_path / "rigs.txt"
+    rigs.write_text("2\n")
+    options = mapper_options({"Mapper.constant_rig_list_path": str(rigs),
+                              "Mapper.ba_refine_sensor_from_rig": True})
+    assert options.bundle_adjustment.constant_rig_ids == (2,)
+    assert options.bundle_adjustment.refine_sensor_from_rig
+    rigs.write_text("front\n")
+    with pytest.raises(UserError, match="expected one rig id per line"):
+        mapper_options({"Mapper.constant_rig_list_path": str(rigs)})
 
 
 def test_pycolmap_options_set_our_fields_and_name_what_does_not_apply(caplog):

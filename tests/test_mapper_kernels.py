@@ -187,10 +187,12 @@ def test_triangulation_angle_filter_agrees_with_every_pair(seed: int) -> None:
                                                   replace=False)} for p in range(1, 301)}
     model = SimpleNamespace(registered=list(poses), xyz=xyz, track=tracks.__getitem__,
                             centre=lambda i: poses[i].inverse().translation)
+    lengths = np.array([len(tracks[p]) for p in tracks])
+    images = np.array([i for p in tracks for i in tracks[p]])
     widest = np.array([brute_force_widest_angle_deg(model, p) for p in tracks])
     assert 0 < (widest >= 1.5).sum() < len(widest)  # both answers occur
     for threshold in (0.5, 1.5, 5.0, 20.0):
-        decided = has_triangulation_angle(model, list(tracks), threshold)
+        decided = has_triangulation_angle(model, list(tracks), lengths, images, threshold)
         assert (decided == (widest >= threshold)).all(), threshold
 
 

@@ -12,9 +12,10 @@ import pycolmap
 import pytest
 import yaml
 
-from colmap_ext import evaluate, mapper, reconstruct, rigs
+from colmap_ext import cli, evaluate, mapper, reconstruct, rigs
 from colmap_ext.compare import compare
 from colmap_ext.errors import UserError
+from colmap_ext.geometry import rotation_angles_deg
 from colmap_ext.ground_truth import GroundTruth
 from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
 from colmap_ext.synthetic.render import render_images
@@ -337,3 +338,37 @@ def test_mapper_registers_whole_frames_and_keeps_the_rig(tmp_path: Path, num_rig
     report = evaluate.evaluate(model, GroundTruth(
         {image.name: image.cam_from_world() for image in truth.images.values()}, {}))
     assert report["R_err_max_deg"] < 0.1  # measured 0.023 and 0.038 deg
+
+
+def test_refining_the_rig_moves_its_cameras_only_where_asked(tmp_path: Path) -> None:
+    """--Mapper.ba_refine_sensor_from_rig 1 on a rig whose calibration is off by a turn of
+    the second camera: the adjustment moves that camera back towards the truth; with the
+    rig in --Mapper.constant_rig_list_path, the calibration stays as given."""
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs, options.num_cameras_per_rig, options.num_frames_per_rig = 1, 2, 6
+    options.num_points3D = 300
+    pycolmap.set_random_seed(1)
+    with pycolmap.Database.open(str(tmp_path / "database.db")) as db:
+        truth = pycolmap.synthesize_dataset(options, db)
+        (rig,) = db.read_all_rigs()
+        (sensor,) = rig.non_ref_sensors
+        true_pose = rig.sensor_from_rig(sensor)
+        rig.set_sensor_from_rig(sensor, pycolmap.Rigid3d(
+            pycolmap.Rotation3d(np.radians([0.3, 0.0, 0.0])), np.zeros(3)) * true_pose)
+        db.update_rig(rig)
+    (tmp_path / "images").mkdir()
+    (tmp_path / "rigs.txt").write_text(f"{rig.rig_id}\n")
+
+    def turned_by(output: Path, *flags: str) -> float:
+        args = ["mapper", "--database_path", tmp_path / "database.db", "--image_path",
+                tmp_path / "images", "--output_path", output, "--seed", "0", *flags]
+        assert cli.main([str(arg) for arg in args]) == 0
+        model = pycolmap.Reconstruction(output / "0")
+        pose = model.rigs[rig.rig_id].sensor_from_rig(sensor)
+        return rotation_angles_deg((pose.rotation.matrix().T @ true_pose.rotation.matrix())[None])[0]
+
+    assert turned_by(tmp_path / "constant") == pytest.approx(0.3, abs=1e-9)
+    assert turned_by(tmp_path / "listed", "--Mapper.ba_refine_sensor_from_rig", "1",
+                     "--Mapper.constant_rig_list_path", tmp_path / "rigs.txt") == \
+        pytest.approx(0.3, abs=1e-9)
+    assert turned_by(tmp_path / "refined", "--Mapper.ba_refine_sensor_from_rig", "1") < 0.1

@@ -83,8 +83,8 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     for camera_id in reconstruction.cameras:
         if not refine_intrinsics or camera_id in ba.constant_camera_ids:
             config.set_constant_cam_intrinsics(camera_id)
-    if not ba.refine_sensor_from_rig:
-        for rig in reconstruction.rigs.values():
+    for rig_id, rig in reconstruction.rigs.items():
+        if not ba.refine_sensor_from_rig or rig_id in ba.constant_rig_ids:
             for sensor_id in rig.non_ref_sensors:
                 config.set_constant_sensor_from_rig_pose(sensor_id)
 
@@ -101,11 +101,14 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     ba_options = adjustment_options(options, max_iterations, refine_intrinsics, loss=loss,
                                     loss_scale_px=loss_scale_px)
     frame_ids = {model.frame_id(i) for i in requested - fixed}
-    before = _variables(reconstruction, frame_ids, variable_point_ids)
+    before = _variables(reconstruction, frame_ids)
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
     if not summary.is_solution_usable():
-        # Not solved (e.g. COLMAP could not fix the gauge): the model stays as it was.
+        # Not solved (e.g. COLMAP could not fix the gauge): the model stays as it was (the
+        # points' positions before the solve are model.xyz's).
         _restore(reconstruction, *before)
+        for point_id in variable_point_ids:
+            reconstruction.points3D[point_id].xyz = model.xyz[point_id]
         return 0
     model.refresh_points(variable_point_ids)
     if refine_intrinsics:
@@ -113,21 +116,18 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     return summary.ceres_summary.num_successful_steps + summary.ceres_summary.num_unsuccessful_steps
 
 
-def _variables(reconstruction: pycolmap.Reconstruction, frame_ids: set[int],
-               point_ids: list[int]) -> tuple[dict, dict, dict, dict]:
-    """What a solve may change: frame poses, point positions, intrinsics, rig poses."""
+def _variables(reconstruction: pycolmap.Reconstruction,
+               frame_ids: set[int]) -> tuple[dict, dict, dict]:
+    """What a solve may change but the points: frame poses, intrinsics, rig poses."""
     return ({frame_id: reconstruction.frames[frame_id].rig_from_world for frame_id in frame_ids},
-            {point_id: reconstruction.points3D[point_id].xyz.copy() for point_id in point_ids},
             {camera_id: camera.params.copy() for camera_id, camera in reconstruction.cameras.items()},
             {rig_id: dict(rig.non_ref_sensors) for rig_id, rig in reconstruction.rigs.items()})
 
 
-def _restore(reconstruction: pycolmap.Reconstruction, poses: dict, points: dict,
-             params: dict, sensors: dict) -> None:
+def _restore(reconstruction: pycolmap.Reconstruction, poses: dict, params: dict,
+             sensors: dict) -> None:
     for frame_id, rig_from_world in poses.items():
         reconstruction.frames[frame_id].rig_from_world = rig_from_world
-    for point_id, xyz in points.items():
-        reconstruction.points3D[point_id].xyz = xyz
     for camera_id, camera_params in params.items():
         reconstruction.cameras[camera_id].params = camera_params
     for rig_id, sensor_from_rig in sensors.items():

@@ -36,10 +36,12 @@ def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
             model.delete_observation(image_id, kp)
             removed_observations += 1
     candidates = [p for p in touched if model.has_point(p)]
-    wide = has_triangulation_angle(model, candidates, options.filtering.min_tri_angle_deg)
+    lengths, images = model.track_images(candidates)
+    wide = has_triangulation_angle(model, candidates, lengths, images,
+                                   options.filtering.min_tri_angle_deg)
     removed_points = 0
-    for point_id, wide_enough in zip(candidates, wide):
-        if not _supported(model, point_id, wide_enough, options, final):
+    for point_id, track_length, wide_enough in zip(candidates, lengths.tolist(), wide):
+        if not _supported(model, point_id, track_length, wide_enough, options, final):
             model.delete_point(point_id)
             removed_points += 1
     return removed_observations, removed_points
@@ -65,9 +67,8 @@ def median_reprojection_error(model: Model, image_ids: list[int]) -> float:
     return float(np.median(np.concatenate(errors))) if any(len(e) for e in errors) else np.inf
 
 
-def _supported(model: Model, point_id: int, wide_enough: bool, options: MapperOptions,
-               final: bool) -> bool:
-    track_length = model.track_length(point_id)
+def _supported(model: Model, point_id: int, track_length: int, wide_enough: bool,
+               options: MapperOptions, final: bool) -> bool:
     if track_length < 2:
         return False
     age = model.num_registered - model.born[point_id]
@@ -78,8 +79,10 @@ def _supported(model: Model, point_id: int, wide_enough: bool, options: MapperOp
     return bool(wide_enough)
 
 
-def has_triangulation_angle(model: Model, point_ids: list[int], min_angle_deg: float) -> np.ndarray:
-    """Whether some two rays of each point's track meet at `min_angle_deg` or more.
+def has_triangulation_angle(model: Model, point_ids: list[int], lengths: np.ndarray,
+                            images: np.ndarray, min_angle_deg: float) -> np.ndarray:
+    """Whether some two rays of each point's track meet at `min_angle_deg` or more; the
+    tracks' lengths and images as Model.track_images gives them.
 
     Linear in the number of observations: with a_k the angle between ray k and a
     pivot ray, the widest pair is at least max(a_k) and at most 2 max(a_k) (triangle
@@ -88,13 +91,9 @@ def has_triangulation_angle(model: Model, point_ids: list[int], min_angle_deg: f
     if not point_ids:
         return np.zeros(0, bool)
     registered = model.registered
-    image_index = dict(zip(registered, range(len(registered))))
-    centres = np.array([model.centre(image_id) for image_id in registered])
-    tracks = [model.track(p) for p in point_ids]
-    lengths = np.array([len(track) for track in tracks])
-    observed = np.fromiter((image_index[i] for track in tracks for i in track),
-                           np.int64, count=int(lengths.sum()))
-    rays = np.repeat(model.xyz[point_ids], lengths, axis=0) - centres[observed]
+    centres = np.zeros((max(registered) + 1, 3))
+    centres[registered] = [model.centre(image_id) for image_id in registered]
+    rays = np.repeat(model.xyz[point_ids], lengths, axis=0) - centres[images]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     starts = np.cumsum(lengths) - lengths
     owner = np.repeat(np.arange(len(point_ids)), lengths)

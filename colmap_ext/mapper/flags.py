@@ -81,19 +81,22 @@ def _iterations(value: int) -> int | None:
     return None if value <= 0 else value  # COLMAP 4.x: -1 is the solver's default
 
 
-def _camera_ids(path: str) -> tuple[int, ...]:
-    """The camera ids listed in a file, one per line, as COLMAP 4 reads them; "": none."""
-    if not path:
-        return ()
-    try:
-        lines = [line.strip() for line in Path(path).read_text().splitlines()]
-    except (OSError, UnicodeDecodeError) as exc:
-        raise UserError(f"cannot read camera list {path}: "
-                        f"{getattr(exc, 'strerror', None) or exc}") from None
-    try:
-        return tuple(int(line) for line in lines if line)
-    except ValueError:
-        raise UserError(f"camera list {path}: expected one camera id per line") from None
+def _id_list(kind: str) -> Callable[[str], tuple[int, ...]]:
+    """The reader of a file of `kind` ids ("camera", "rig"), one per line, as COLMAP 4
+    reads them; "": none."""
+    def read(path: str) -> tuple[int, ...]:
+        if not path:
+            return ()
+        try:
+            lines = [line.strip() for line in Path(path).read_text().splitlines()]
+        except (OSError, UnicodeDecodeError) as exc:
+            raise UserError(f"cannot read {kind} list {path}: "
+                            f"{getattr(exc, 'strerror', None) or exc}") from None
+        try:
+            return tuple(int(line) for line in lines if line)
+        except ValueError:
+            raise UserError(f"{kind} list {path}: expected one {kind} id per line") from None
+    return read
 
 
 @dataclass(frozen=True)
@@ -139,7 +142,6 @@ _BA_SCHEDULE = ("global adjustment runs whenever the model grows by --Mapper.ba_
                 "ratio, each adjustment followed by filtering")
 _GPU = "bundle adjustment runs on the CPU (pycolmap's Ceres)"
 _NO_PRIORS = "position priors are not used"
-_TRIVIAL_RIGS = "each image is its own rig, its camera at the rig's origin"
 
 
 def _na(name: str, type_: type, pycolmap: str | None, default: Any, reason: str,
@@ -198,11 +200,12 @@ FLAGS: tuple[Flag, ...] = (
     Flag("Mapper.ba_refine_sensor_from_rig", bool, "ba_refine_sensor_from_rig",
          "bundle_adjustment.refine_sensor_from_rig", "refine the poses of a rig's cameras "
          "relative to the rig; 0: the calibrated rig is held constant"),
-    _na("Mapper.constant_rig_list_path", str, None, "",
-        f"{_TRIVIAL_RIGS}: there is no rig to hold constant"),
+    Flag("Mapper.constant_rig_list_path", str, None, "bundle_adjustment.constant_rig_ids",
+         "file of rig ids, one per line, whose cameras' poses in the rig stay constant when "
+         "--Mapper.ba_refine_sensor_from_rig refines the others", convert=_id_list("rig")),
     Flag("Mapper.constant_camera_list_path", str, None, "bundle_adjustment.constant_camera_ids",
          "file of camera ids, one per line, whose intrinsics stay constant when "
-         "--Mapper.ba_refine_* refines the others", convert=_camera_ids),
+         "--Mapper.ba_refine_* refines the others", convert=_id_list("camera")),
     Flag("Mapper.ba_min_num_residuals_for_cpu_multi_threading", int,
          "ba_min_num_residuals_for_cpu_multi_threading",
          "bundle_adjustment.min_num_residuals_for_multi_threading",

@@ -220,8 +220,9 @@ class BundleAdjustmentOptions:
     # Cameras whose intrinsics stay constant when the others are refined.
     constant_camera_ids: tuple[int, ...] = ()
     # Refine the poses of a rig's cameras relative to the rig (the method holds the
-    # calibrated rig constant).
+    # calibrated rig constant), but for the rigs in constant_rig_ids.
     refine_sensor_from_rig: bool = False
+    constant_rig_ids: tuple[int, ...] = ()
 
     @property
     def refines_intrinsics(self) -> bool:
@@ -241,9 +242,10 @@ class BundleAdjustmentOptions:
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
         _require(self.min_num_residuals_for_multi_threading >= 0, self,
                  "min_num_residuals_for_multi_threading", ">= 0")
-        _require(isinstance(self.constant_camera_ids, tuple)
-                 and all(isinstance(i, int) and i >= 1 for i in self.constant_camera_ids),
-                 self, "constant_camera_ids", "a tuple of camera ids >= 1")
+        for name in ("constant_camera_ids", "constant_rig_ids"):
+            ids = getattr(self, name)
+            _require(isinstance(ids, tuple) and all(isinstance(i, int) and i >= 1 for i in ids),
+                     self, name, "a tuple of ids >= 1")
 
 
 @dataclass
