@@ -18,7 +18,7 @@ from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (InitializationOptions, TriangulationOptions,
                                        TwoViewOptions)
-from colmap_ext.mapper.two_view import Pair
+from colmap_ext.mapper.two_view import Pair, relative_pose
 
 # Pairs evaluated when the mapper chooses: the ones with most verified matches.
 MAX_CANDIDATE_PAIRS = 40
@@ -42,13 +42,9 @@ def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
     """Relative pose and triangulated consensus set of a pair, or None if it is weak.
     `seed`: the RANSAC's (None: unseeded)."""
     id1, id2 = pair
-    try:
-        result = solvers.relative_pose(
-            model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
-            max_error=two_view.max_error_px * pair_pixel_angles(
-                model, id1, matches[:, 0], id2, matches[:, 1]),
-            min_num_inliers=initialization.min_num_inliers, seed=seed)
-    except solvers.EstimationError:
+    result = relative_pose(model, pair, matches, two_view.max_error_px,
+                           initialization.min_num_inliers, seed)
+    if result is None:
         return None
     inliers = matches[result.inlier_mask]
     identity = pycolmap.Rigid3d()

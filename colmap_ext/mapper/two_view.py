@@ -46,15 +46,24 @@ def verify_pair(model: Model, id1: int, id2: int, matches: np.ndarray,
     """The matches consistent with one calibrated relative pose, or None."""
     if len(matches) < max(5, two_view.min_num_inliers):
         return None
+    result = relative_pose(model, (id1, id2), matches, two_view.max_error_px,
+                           two_view.min_num_inliers, seed)
+    return None if result is None else matches[result.inlier_mask]
+
+
+def relative_pose(model: Model, pair: Pair, matches: np.ndarray, max_error_px: float,
+                  min_num_inliers: int, seed: int | None) -> solvers.RelativePoseResult | None:
+    """The 5-point RANSAC's relative pose of a pair from its matches' rays, the pixel
+    threshold turned into each match's angle (pair_pixel_angles); None where it fails."""
+    id1, id2 = pair
     try:
-        result = solvers.relative_pose(
+        return solvers.relative_pose(
             model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
-            max_error=two_view.max_error_px * pair_pixel_angles(
-                model, id1, matches[:, 0], id2, matches[:, 1]),
-            min_num_inliers=two_view.min_num_inliers, seed=seed)
+            max_error=max_error_px * pair_pixel_angles(model, id1, matches[:, 0], id2,
+                                                       matches[:, 1]),
+            min_num_inliers=min_num_inliers, seed=seed)
     except solvers.EstimationError:
         return None
-    return matches[result.inlier_mask]
 
 
 def with_rays_only(model: Model, pair: Pair, matches: np.ndarray) -> np.ndarray:
