@@ -25,7 +25,7 @@ from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
 from colmap_ext.mapper.filtering import filter_images, filter_points
-from colmap_ext.mapper.refinement import (MatchGraphs, model_adjuster, refine_joined,
+from colmap_ext.mapper.refinement import (MatchGraphs, ModelAdjuster, refine_joined,
                                           retriangulate, triangulate_images)
 from colmap_ext.mapper.registration import (Correspondences, Outcome,
                                             descriptor_correspondences, register_frame,
@@ -57,7 +57,7 @@ class IncrementalMapper:
         self.graphs = MatchGraphs.of(model, matches)
         self.options = options
         self.timer = timer
-        self.adjuster = model_adjuster(model, options, timer)
+        self.adjuster = ModelAdjuster.of(model, options, timer)
         self.progress = progress
         self.sequence_index = {image_id: i for i, image_id in enumerate(
             sorted(model.image_ids, key=lambda i: model.db.images[i].name))}

@@ -76,6 +76,11 @@ class ModelAdjuster:
         self.timer = timer
         self.loss_scale_px = ba.loss_scale_px
 
+    @classmethod
+    def of(cls, model: Model, options: MapperOptions, timer: StageTimer) -> ModelAdjuster:
+        """The adjuster of `model` with the options' components and threads."""
+        return cls(model, options.bundle_adjustment, options.filtering, options.threads(), timer)
+
     def local_adjustment(self, image_ids: list[int]) -> None:
         """Adjust `image_ids` (bundle_adjust's local rule for the points), then filter them."""
         self._bundle_adjust(image_ids, self.ba.local_max_iterations)
@@ -113,12 +118,6 @@ class ModelAdjuster:
         self.timer.counts["bundle adjustment iterations"] += iterations
 
 
-def model_adjuster(model: Model, options: MapperOptions, timer: StageTimer) -> ModelAdjuster:
-    """The ModelAdjuster of `model` with the options' components and threads."""
-    return ModelAdjuster(model, options.bundle_adjustment, options.filtering, options.threads(),
-                         timer)
-
-
 def refine_joined(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
                   timer: StageTimer) -> None:
     """Adjust a model joined from two (merging.py): global adjustment, then rounds
@@ -126,7 +125,7 @@ def refine_joined(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     every image against its neighbours, which now include the images across the
     junction; the better poses of each round let the next match more of them."""
     graphs = MatchGraphs.of(model, matches)
-    adjuster = model_adjuster(model, options, timer)
+    adjuster = ModelAdjuster.of(model, options, timer)
     adjuster.global_adjustment()
     for _ in range(options.merging.refinement_rounds):
         with timer("triangulation"):
@@ -161,5 +160,5 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
         # angles) go first: the adjustment then solves the model's size, not twice it.
         filter_points(model, registered, options.filtering, final=True)
     # One round: the observations are fresh, and a second changed nothing measured.
-    model_adjuster(model, options, timer).global_adjustment(final=True, rounds=1)
+    ModelAdjuster.of(model, options, timer).global_adjustment(final=True, rounds=1)
     return model.reconstruction.num_points3D()
