@@ -87,7 +87,8 @@ def adjustment(reconstruction: pycolmap.Reconstruction, loss: str,
     else:
         config.set_constant_rig_from_world_pose(reconstruction.images[constant_image_id].frame_id)
     return pycolmap.create_default_ceres_bundle_adjuster(
-        adjustment_options(options, MAX_ITERATIONS), config, reconstruction)
+        adjustment_options(options.bundle_adjustment, MAX_ITERATIONS, options.threads()), config,
+        reconstruction)
 
 
 def rotation_deviations(reconstruction: pycolmap.Reconstruction, names: list[str],

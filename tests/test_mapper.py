@@ -146,21 +146,27 @@ def test_initial_pair_has_most_points_among_the_wide_and_relaxes_as_colmap(synth
     store = NearestDescriptors(db.descriptors, {i: len(db.images[i].keypoints) for i in db.images},
                                options.guided_matching.num_neighbors, 2**26, num_threads=2)
     model = Model(db, store)
-    matches = verified_matches(model, options, progress=False)
+    matches = verified_matches(model, options.two_view, options.seed, progress=False)
     candidates = sorted(matches, key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
     two_views = [t for pair in candidates
-                 if (t := reconstruct_pair(model, pair, matches[pair], options)) is not None]
+                 if (t := reconstruct_pair(model, pair, matches[pair], options.initialization,
+                                           options.two_view, options.triangulation,
+                                           options.seed)) is not None]
     angles = sorted(t.median_angle_deg for t in two_views)
     assert len(two_views) >= 12 and angles[-1] > 2 * angles[0]
+    def choose():
+        return choose_initial_pair(model, matches, options.initialization, options.two_view,
+                                   options.triangulation, set(), options.seed)
+
     for min_angle in (angles[0], angles[len(angles) // 2], angles[-1]):
         options.initialization.min_tri_angle_deg = min_angle
-        chosen = choose_initial_pair(model, matches, options, set())
+        chosen = choose()
         wide = [t for t in two_views if t.median_angle_deg >= min_angle]
         assert chosen.median_angle_deg >= min_angle
         assert len(chosen.matches) == max(len(t.matches) for t in wide)
     # Four times the widest pair's angle, halved twice: the widest pair.
     options.initialization.min_tri_angle_deg = 4 * angles[-1]
-    assert choose_initial_pair(model, matches, options, set()).median_angle_deg == angles[-1]
+    assert choose().median_angle_deg == angles[-1]
 
 
 def test_cli_writes_text_and_refuses_to_overwrite(synthetic, tmp_path):
@@ -290,7 +296,8 @@ def test_merging_recovers_a_known_similarity(synthetic, monkeypatch):
                              np.array([4.0, -3.0, 1.0]))
     source.transform(applied)
 
-    found = find_similarity(target, source, pair_graph(db.raw_matches), options)
+    found = find_similarity(target, source, pair_graph(db.raw_matches), options.merging,
+                            options.registration, options.guided_matching, options.seed)
     assert found is not None
     similarity = found[0]
     # Measured over seeds 0-4: rotation 0.022-0.023 deg off, scale ratio within 0.00013

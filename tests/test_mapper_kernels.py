@@ -211,7 +211,8 @@ def test_guided_matching_finds_the_true_correspondences(tmp_path) -> None:
     for view, image_id in enumerate(truth.image_ids[:2]):
         model.register(image_id, scene.cams_from_world[view])
     all_kps = np.arange(len(truth.point_ids[0]))
-    kps, other_kps, _ = compatible_features(model, first, second, all_kps, options)
+    kps, other_kps, _ = compatible_features(model, first, second, all_kps,
+                                            options.guided_matching)
     shared = len(np.intersect1d(truth.point_ids[0], truth.point_ids[1]))
     correct = truth.point_ids[0][kps] == truth.point_ids[1][other_kps]
     # Measured: every one correct, every shared point found (scene seeds 0-2, 140-166 points).
@@ -248,7 +249,8 @@ def test_epipolar_support_tells_the_true_pose_from_a_turned_one(tmp_path) -> Non
         return pycolmap.Rigid3d(rotation, np.zeros(3)) * true_pose
 
     # Measured: 1.0 for the true pose, 0.01 pitched, 0.43 turned.
-    assert epipolar_support(model, {image_id: true_pose}, graph, options) > 0.97
-    assert epipolar_support(model, {image_id: turned([1.0, 0.0, 0.0])}, graph, options) < 0.1
-    assert epipolar_support(model, {image_id: turned([0.0, 5.0, 0.0])}, graph, options) < 0.6
-    assert epipolar_support(model, {image_id: turned([1.0, 0.0, 0.0])}, {}, options) == 1.0
+    registration = options.registration
+    assert epipolar_support(model, {image_id: true_pose}, graph, registration) > 0.97
+    assert epipolar_support(model, {image_id: turned([1.0, 0.0, 0.0])}, graph, registration) < 0.1
+    assert epipolar_support(model, {image_id: turned([0.0, 5.0, 0.0])}, graph, registration) < 0.6
+    assert epipolar_support(model, {image_id: turned([1.0, 0.0, 0.0])}, {}, registration) == 1.0

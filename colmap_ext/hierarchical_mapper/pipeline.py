@@ -19,6 +19,7 @@ from colmap_ext.mapper.bundle_adjustment import adjust_reconstruction
 from colmap_ext.mapper.cli import options_from_flags
 from colmap_ext.mapper.initial_pair import check_requested_pair
 from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.pipeline import options_for_model
 from colmap_ext.timing import StageTimer
 
 
@@ -41,7 +42,7 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     written), and a report per cluster. The command maps with MAPPER_DEFAULTS under its
     flags."""
     timer = timer or StageTimer()
-    check_requested_pair(db.images, mapper_options)
+    check_requested_pair(db.images, mapper_options.initialization)
     with timer("partition"):
         clusters = partition(db, options)
     if not clusters:
@@ -52,7 +53,7 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     workers = 1 if cluster is not None else min(options.workers(), len(clusters))
     threads = 1 if cluster is not None else max(1, cores // workers)
     task_options = options_from_flags({"Mapper.num_threads": threads}, base=mapper_options)
-    arguments = [(index, database_subset(db, ids), task_options.choosing_initial_pair(ids),
+    arguments = [(index, database_subset(db, ids), options_for_model(task_options, ids),
                   threads) for index, ids in enumerate(clusters)]
     models: list[ClusterModel] = []
     reports: list[ClusterReport] = []
@@ -69,7 +70,7 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
         reconstructions = [join(db, models, group) for group in groups]
     with timer("bundle adjustment"):
         for reconstruction in reconstructions:
-            adjust_reconstruction(reconstruction, mapper_options, cores)
+            adjust_reconstruction(reconstruction, mapper_options.bundle_adjustment, cores)
             drop_far_observations(reconstruction, options.max_reproj_error_px)
     reconstructions = [r for r in reconstructions if r.num_reg_images() >= 2]
     return sorted(reconstructions, key=lambda r: (-r.num_reg_images(), -r.num_points3D())), \

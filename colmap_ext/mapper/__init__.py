@@ -11,7 +11,14 @@ One module per step of the method (SPEC.md, steps 4 to 7):
 - `bundle_adjustment`: local and global refinement through pycolmap
 - `filtering`: dropping incompatible observations, weakly supported points and ill-posed images
 - `merging`: joining models that fell apart, by a similarity two images agree on
+- `refinement`: what the loop and the refinement of finished models share (neighbours,
+  triangulation of images, adjustment with filtering); refinement after a merge, and
+  retriangulation
 - `pipeline`: the loop that runs them, and `run()`
+
+Each step takes the option components it uses (options.py), as COLMAP's steps do; the
+run's settings, the RANSAC seed and the thread count, are passed to the steps that need
+them.
 """
 
 from colmap_ext.mapper.options import MapperOptions

@@ -12,18 +12,16 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import BundleAdjustmentOptions
 
 
-def adjustment_options(options: MapperOptions, max_iterations: int,
-                       refine_intrinsics: bool = False, num_threads: int | None = None,
-                       loss: str | None = None,
+def adjustment_options(ba: BundleAdjustmentOptions, max_iterations: int, num_threads: int,
+                       refine_intrinsics: bool = False, loss: str | None = None,
                        loss_scale_px: float | None = None) -> pycolmap.BundleAdjustmentOptions:
     """pycolmap's options for one adjustment with ours: the loss and its scale (default:
     the robust one, BundleAdjustmentOptions.loss and loss_scale_px), Ceres's limits and
-    threads (default: options.threads()), and the intrinsics refined only where
-    `refine_intrinsics` and the options ask for it."""
-    ba = options.bundle_adjustment
+    threads, and the intrinsics refined only where `refine_intrinsics` and the options
+    ask for it."""
     refine = refine_intrinsics and ba.refines_intrinsics
     ba_options = pycolmap.BundleAdjustmentOptions(
         refine_focal_length=refine and ba.refine_focal_length,
@@ -35,14 +33,14 @@ def adjustment_options(options: MapperOptions, max_iterations: int,
     ba_options.ceres.loss_function_scale = loss_scale_px or ba.loss_scale_px
     ba_options.ceres.solver_options.max_num_iterations = max_iterations
     ba_options.ceres.solver_options.function_tolerance = ba.function_tolerance
-    ba_options.ceres.solver_options.num_threads = num_threads or options.threads()
+    ba_options.ceres.solver_options.num_threads = num_threads
     ba_options.ceres.min_num_residuals_for_cpu_multi_threading = \
         ba.min_num_residuals_for_multi_threading
     return ba_options
 
 
-def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, options: MapperOptions,
-                          num_threads: int | None = None) -> None:
+def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, ba: BundleAdjustmentOptions,
+                          num_threads: int) -> None:
     """Global adjustment, in place, of every registered pose and every point of a
     reconstruction that no Model holds (a joined one): the options' loss and Ceres limits
     (global_max_iterations), intrinsics constant, the gauge fixed by two cameras."""
@@ -52,13 +50,12 @@ def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, options: Mapp
     for camera_id in reconstruction.cameras:
         config.set_constant_cam_intrinsics(camera_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    ba_options = adjustment_options(options, options.bundle_adjustment.global_max_iterations,
-                                    num_threads=num_threads)
+    ba_options = adjustment_options(ba, ba.global_max_iterations, num_threads)
     pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
 
 
-def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
-                  max_iterations: int, refine_intrinsics: bool = False,
+def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOptions,
+                  max_iterations: int, num_threads: int, refine_intrinsics: bool = False,
                   loss: str | None = None, loss_scale_px: float | None = None) -> int:
     """Adjust, on the model's reconstruction in place, the frame poses of `image_ids`
     (except the model's fixed frames) and the points they observe, as COLMAP's
@@ -70,7 +67,6 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     too, but for the cameras in BundleAdjustmentOptions.constant_camera_ids; `loss` and
     `loss_scale_px` replace the options' robust loss and its scale. Returns the number of
     Ceres iterations."""
-    ba = options.bundle_adjustment
     reconstruction = model.reconstruction
     requested = {i for image_id in image_ids for i in model.frame_images(image_id)}
     refine_intrinsics = refine_intrinsics and ba.refines_intrinsics
@@ -98,8 +94,8 @@ def bundle_adjust(model: Model, image_ids: list[int], options: MapperOptions,
     if len(constant) < 2:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
 
-    ba_options = adjustment_options(options, max_iterations, refine_intrinsics, loss=loss,
-                                    loss_scale_px=loss_scale_px)
+    ba_options = adjustment_options(ba, max_iterations, num_threads, refine_intrinsics,
+                                    loss=loss, loss_scale_px=loss_scale_px)
     frame_ids = {model.frame_id(i) for i in requested - fixed}
     before = _variables(reconstruction, frame_ids)
     summary = pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()

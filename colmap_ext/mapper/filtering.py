@@ -9,10 +9,10 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import FilteringOptions
 
 
-def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
+def filter_points(model: Model, image_ids: list[int], filtering: FilteringOptions,
                   final: bool = False, max_error_ratio: float = 0.0) -> tuple[int, int]:
     """Filter the observations in `image_ids` and the points they see. Before the end
     (`final` False), points younger than the grace period may keep two-view tracks.
@@ -24,8 +24,8 @@ def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
     poses under the robust loss; which of them a model holds depends on its run's RANSAC
     draws, and its poses did too.
     Returns (observations removed, points removed)."""
-    limit = error_limit(options.filtering.max_reproj_error_px,
-                        median_reprojection_error(model, image_ids), options, max_error_ratio)
+    limit = error_limit(filtering.max_reproj_error_px, median_reprojection_error(model, image_ids),
+                        filtering.noise_max_error_ratio, max_error_ratio)
     removed_observations = 0
     touched: set[int] = set()
     for image_id in image_ids:  # read afresh: a deletion may take a point of a later image
@@ -37,24 +37,23 @@ def filter_points(model: Model, image_ids: list[int], options: MapperOptions,
             removed_observations += 1
     candidates = [p for p in touched if model.has_point(p)]
     lengths, images = model.track_images(candidates)
-    wide = has_triangulation_angle(model, candidates, lengths, images,
-                                   options.filtering.min_tri_angle_deg)
+    wide = has_triangulation_angle(model, candidates, lengths, images, filtering.min_tri_angle_deg)
     removed_points = 0
     for point_id, track_length, wide_enough in zip(candidates, lengths.tolist(), wide):
-        if not _supported(model, point_id, track_length, wide_enough, options, final):
+        if not _supported(model, point_id, track_length, wide_enough, filtering, final):
             model.delete_point(point_id)
             removed_points += 1
     return removed_observations, removed_points
 
 
-def error_limit(max_error_px: float, median_error_px: float, options: MapperOptions,
+def error_limit(max_error_px: float, median_error_px: float, noise_max_error_ratio: float,
                 max_error_ratio: float = 0.0) -> float:
     """The reprojection error (px) beyond which an observation does not belong to its
-    point: `max_error_px`, raised to noise_max_error_ratio x the median error where the
+    point: `max_error_px`, raised to `noise_max_error_ratio` x the median error where the
     keypoint noise reaches it (a threshold in pixels that the noise crosses drops true
     observations and splits tracks), lowered to `max_error_ratio` x the median where
     that is given and smaller."""
-    limit = max(max_error_px, options.filtering.noise_max_error_ratio * median_error_px)
+    limit = max(max_error_px, noise_max_error_ratio * median_error_px)
     if max_error_ratio > 0:
         limit = min(limit, max_error_ratio * median_error_px)
     return limit
@@ -68,11 +67,10 @@ def median_reprojection_error(model: Model, image_ids: list[int]) -> float:
 
 
 def _supported(model: Model, point_id: int, track_length: int, wide_enough: bool,
-               options: MapperOptions, final: bool) -> bool:
+               filtering: FilteringOptions, final: bool) -> bool:
     if track_length < 2:
         return False
     age = model.num_registered - model.born[point_id]
-    filtering = options.filtering
     if track_length < filtering.min_track_length and \
             (final or age >= filtering.track_grace_registrations):
         return False
@@ -117,7 +115,7 @@ def has_triangulation_angle(model: Model, point_ids: list[int], lengths: np.ndar
     return wide
 
 
-def filter_images(model: Model, options: MapperOptions) -> list[int]:
+def filter_images(model: Model, filtering: FilteringOptions) -> list[int]:
     """Deregister the images whose observed points fix their rotation worse than
     `max_rotation_uncertainty` (see `rotation_uncertainty`); returns their ids.
 
@@ -132,7 +130,7 @@ def filter_images(model: Model, options: MapperOptions) -> list[int]:
             continue  # a rig's frame is posed by all its images together
         _, point_ids = model.observations(image_id)
         if rotation_uncertainty(model.pose(image_id), model.xyz[point_ids]) > \
-                options.filtering.max_rotation_uncertainty:
+                filtering.max_rotation_uncertainty:
             model.deregister(image_id)
             weak.append(image_id)
     return weak

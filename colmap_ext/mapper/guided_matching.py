@@ -9,14 +9,15 @@ import pycolmap
 
 from colmap_ext.geometry import sampson_angles
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import GuidedMatchingOptions
 
 
 def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndarray,
-                        options: MapperOptions) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                        guided: GuidedMatchingOptions
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For keypoints `kps` of `image_id`, the best compatible keypoint in `other_id`.
 
-    Compatible: among the keypoint's `guided_num_neighbors` nearest descriptors, within
+    Compatible: among the keypoint's `num_neighbors` nearest descriptors, within
     `max_descriptor_distance`, and within the reprojection threshold of the epipolar
     line (angular Sampson error, against the threshold in pixels times the mean angle a
     pixel spans at the two keypoints). The closest such descriptor wins; each keypoint of the
@@ -29,11 +30,11 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     index, angles = index[kps], angles[kps]
     E = pycolmap.essential_matrix_from_pose(model.pose(other_id) * model.pose(image_id).inverse())
     repeated = np.repeat(kps, index.shape[1])
-    max_errors = options.guided_matching.max_epipolar_error_px * pair_pixel_angles(
+    max_errors = guided.max_epipolar_error_px * pair_pixel_angles(
         model, image_id, repeated, other_id, index.ravel())
     errors = sampson_angles(E, model.rays[image_id][repeated], model.rays[other_id][index.ravel()])
     compatible = (errors <= max_errors).reshape(index.shape) & \
-        (angles <= options.guided_matching.max_descriptor_distance)
+        (angles <= guided.max_descriptor_distance)
     first = np.argmax(compatible, axis=1)  # nearest compatible descriptor
     rows = np.flatnonzero(compatible.any(axis=1))
     kps, other, angles = kps[rows], index[rows, first[rows]], angles[rows, first[rows]]

@@ -16,8 +16,9 @@ import solvers
 from colmap_ext.errors import UserError
 from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.two_view import Pair
+from colmap_ext.mapper.options import (InitializationOptions, TriangulationOptions,
+                                       TwoViewOptions)
+from colmap_ext.mapper.two_view import Pair, relative_pose
 
 # Pairs evaluated when the mapper chooses: the ones with most verified matches.
 MAX_CANDIDATE_PAIRS = 40
@@ -35,23 +36,22 @@ class TwoViewReconstruction:
 
 
 def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
-                     options: MapperOptions) -> TwoViewReconstruction | None:
-    """Relative pose and triangulated consensus set of a pair, or None if it is weak."""
+                     initialization: InitializationOptions, two_view: TwoViewOptions,
+                     triangulation: TriangulationOptions,
+                     seed: int | None) -> TwoViewReconstruction | None:
+    """Relative pose and triangulated consensus set of a pair, or None if it is weak.
+    `seed`: the RANSAC's (None: unseeded)."""
     id1, id2 = pair
-    try:
-        result = solvers.relative_pose(
-            model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
-            max_error=options.two_view.max_error_px * pair_pixel_angles(
-                model, id1, matches[:, 0], id2, matches[:, 1]),
-            min_num_inliers=options.initialization.min_num_inliers, seed=options.seed)
-    except solvers.EstimationError:
+    result = relative_pose(model, pair, matches, two_view.max_error_px,
+                           initialization.min_num_inliers, seed)
+    if result is None:
         return None
     inliers = matches[result.inlier_mask]
     identity = pycolmap.Rigid3d()
     xyz, valid = solvers.triangulate(identity, result.cam2_from_cam1, model.rays[id1][inliers[:, 0]],
                                      model.rays[id2][inliers[:, 1]],
-                                     min_angle_deg=options.triangulation.min_tri_angle_deg)
-    if valid.sum() < options.initialization.min_num_inliers:
+                                     min_angle_deg=triangulation.min_tri_angle_deg)
+    if valid.sum() < initialization.min_num_inliers:
         return None
     xyz, inliers = xyz[valid], inliers[valid]
     centre2 = result.cam2_from_cam1.inverse().translation
@@ -62,72 +62,88 @@ def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
                                  float(np.median(angles)))
 
 
-def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
-                        excluded: set[Pair]) -> TwoViewReconstruction | None:
+def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray],
+                        initialization: InitializationOptions, two_view: TwoViewOptions,
+                        triangulation: TriangulationOptions, excluded: set[Pair],
+                        seed: int | None) -> TwoViewReconstruction | None:
     """The requested pair, or the best-conditioned among the pairs with most matches:
     most well-triangulated points among those whose median triangulation angle reaches
     initialization.min_tri_angle_deg. As COLMAP relaxes its initialization, the angle
-    halves while no pair reaches it, down to triangulation.min_tri_angle_deg."""
-    if options.initialization.image_id1 >= 0 or options.initialization.image_id2 >= 0:
-        return _requested_pair(model, matches, options)
+    halves while no pair reaches it, down to triangulation.min_tri_angle_deg. A pair
+    that fails joins `excluded`. `seed`: the RANSAC's (None: unseeded)."""
+    if initialization.image_id1 >= 0 or initialization.image_id2 >= 0:
+        return _requested_pair(model, matches, initialization, two_view, triangulation, seed)
     candidates = sorted((pair for pair, m in matches.items()
-                         if len(m) >= options.initialization.min_num_inliers and pair not in excluded
+                         if len(m) >= initialization.min_num_inliers and pair not in excluded
                          and model.frame_id(pair[0]) != model.frame_id(pair[1])),
                         key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
-    two_views = []
+    reconstructed = []
     for pair in candidates:
-        two_view = reconstruct_pair(model, pair, matches[pair], options)
-        if two_view is not None:
-            two_view = with_frames(model, two_view, matches, options)
-        if two_view is None:
+        candidate = _reconstruct_frames(model, pair, matches, initialization, two_view,
+                                        triangulation, seed)
+        if candidate is None:
             excluded.add(pair)
         else:
-            two_views.append(two_view)
-    min_angle = options.initialization.min_tri_angle_deg
-    while two_views:
-        wide = [two_view for two_view in two_views if two_view.median_angle_deg >= min_angle]
+            reconstructed.append(candidate)
+    min_angle = initialization.min_tri_angle_deg
+    while reconstructed:
+        wide = [candidate for candidate in reconstructed if candidate.median_angle_deg >= min_angle]
         if wide:
-            return max(wide, key=lambda two_view: len(two_view.matches))
-        if min_angle / 2 < options.triangulation.min_tri_angle_deg:
+            return max(wide, key=lambda candidate: len(candidate.matches))
+        if min_angle / 2 < triangulation.min_tri_angle_deg:
             break
         min_angle /= 2
     return None
 
 
-def check_requested_pair(image_ids: Iterable[int], options: MapperOptions) -> None:
+def check_requested_pair(image_ids: Iterable[int], initialization: InitializationOptions) -> None:
     """A UserError unless each requested initial image is one of `image_ids`."""
-    for image_id in (options.initialization.image_id1, options.initialization.image_id2):
+    for image_id in (initialization.image_id1, initialization.image_id2):
         if image_id >= 0 and image_id not in image_ids:
             raise UserError(f"--Mapper.init_image_id1/2: no image with id {image_id} in the database")
 
 
 def _requested_pair(model: Model, matches: dict[Pair, np.ndarray],
-                    options: MapperOptions) -> TwoViewReconstruction:
-    id1, id2 = options.initialization.image_id1, options.initialization.image_id2
-    check_requested_pair(model.db.images, options)
+                    initialization: InitializationOptions, two_view: TwoViewOptions,
+                    triangulation: TriangulationOptions, seed: int | None) -> TwoViewReconstruction:
+    id1, id2 = initialization.image_id1, initialization.image_id2
+    check_requested_pair(model.db.images, initialization)
     key = (min(id1, id2), max(id1, id2))
     if key not in matches:
         raise UserError(f"initial images {id1} and {id2} have no verified matches")
     if model.frame_id(id1) == model.frame_id(id2):
         raise UserError(f"initial images {id1} and {id2} are of the same frame of a rig")
-    two_view = reconstruct_pair(model, key, matches[key], options)
-    if two_view is not None:
-        two_view = with_frames(model, two_view, matches, options)
-    if two_view is None:
+    requested = _reconstruct_frames(model, key, matches, initialization, two_view,
+                                    triangulation, seed)
+    if requested is None:
         raise UserError(f"initial images {id1} and {id2} do not give a relative pose "
                         f"with enough well-triangulated points")
-    return two_view
+    return requested
 
 
-def with_frames(model: Model, two_view: TwoViewReconstruction, matches: dict[Pair, np.ndarray],
-                options: MapperOptions) -> TwoViewReconstruction | None:
+def _reconstruct_frames(model: Model, pair: Pair, matches: dict[Pair, np.ndarray],
+                        initialization: InitializationOptions, two_view: TwoViewOptions,
+                        triangulation: TriangulationOptions,
+                        seed: int | None) -> TwoViewReconstruction | None:
+    """The pair reconstructed (reconstruct_pair), with its frames' relative pose where
+    they are a rig's (with_frames); None where either fails."""
+    reconstructed = reconstruct_pair(model, pair, matches[pair], initialization, two_view,
+                                     triangulation, seed)
+    if reconstructed is None:
+        return None
+    return with_frames(model, reconstructed, matches, initialization, two_view, seed)
+
+
+def with_frames(model: Model, reconstructed: TwoViewReconstruction,
+                matches: dict[Pair, np.ndarray], initialization: InitializationOptions,
+                two_view: TwoViewOptions, seed: int | None) -> TwoViewReconstruction | None:
     """The pair as it is where each image is alone in its frame; else with its frames'
     generalized relative pose from the verified matches between all their images, or
     None where that fails."""
-    id1, id2 = two_view.pair
+    id1, id2 = reconstructed.pair
     images1, images2 = model.frame_images(id1), model.frame_images(id2)
     if len(images1) == 1 and len(images2) == 1:
-        return two_view
+        return reconstructed
     rays1, rays2, index1, index2, max_errors = [], [], [], [], []
     for k1, a in enumerate(images1):
         for k2, b in enumerate(images2):
@@ -140,17 +156,17 @@ def with_frames(model: Model, two_view: TwoViewReconstruction, matches: dict[Pai
             rays2.append(model.rays[b][kps_b])
             index1.append(np.full(len(kps_a), k1))
             index2.append(np.full(len(kps_b), len(images1) + k2))
-            max_errors.append(options.two_view.max_error_px *
+            max_errors.append(two_view.max_error_px *
                               pair_pixel_angles(model, a, kps_a, b, kps_b))
     cams_from_rig = [model.cam_from_rig(i) for i in images1 + images2]
     try:
         result = solvers.generalized_relative_pose(
             np.concatenate(rays1), np.concatenate(index1), np.concatenate(rays2),
             np.concatenate(index2), cams_from_rig, max_error=np.concatenate(max_errors),
-            min_num_inliers=options.initialization.min_num_inliers, seed=options.seed)
+            min_num_inliers=initialization.min_num_inliers, seed=seed)
     except (solvers.EstimationError, ValueError):
         return None
-    return dataclasses.replace(two_view, rig2_from_rig1=result.rig2_from_rig1)
+    return dataclasses.replace(reconstructed, rig2_from_rig1=result.rig2_from_rig1)
 
 
 def initialize(model: Model, two_view: TwoViewReconstruction) -> None:

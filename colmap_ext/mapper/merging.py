@@ -26,7 +26,7 @@ from colmap_ext.geometry import (fit_similarity, mean_rotation, rotation_angles_
                                  vector_angles_deg)
 from colmap_ext.mapper.descriptors import nearest_descriptors
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import GuidedMatchingOptions, MergingOptions, RegistrationOptions
 from colmap_ext.mapper.registration import MAX_RATIO
 
 # Nearest observations searched per keypoint for the ratio test, which compares the
@@ -55,42 +55,46 @@ class CrossRegistration:
 
 
 def find_similarity(target: Model, source: Model, raw_graph: dict[int, dict[int, np.ndarray]],
-                    options: MapperOptions
+                    merging: MergingOptions, registration: RegistrationOptions,
+                    guided: GuidedMatchingOptions, seed: int | None
                     ) -> tuple[pycolmap.Sim3d, tuple[CrossRegistration, CrossRegistration]] | None:
     """target_from_source from the two consistent cross-registrations with most inliers
-    together, if they have at least `abs_pose_min_num_inliers`; else None."""
+    together, if they have at least `abs_pose_min_num_inliers`; else None. `seed`: the
+    RANSAC's (None: unseeded)."""
     registrations = [r for image_model, points_model in ((source, target), (target, source))
                      for image_id in image_model.registered
                      if (r := cross_register(image_model, image_id, points_model, raw_graph,
-                                             options, into_target=points_model is target))]
+                                             registration, guided, seed,
+                                             into_target=points_model is target))]
     pairs = sorted(itertools.combinations(registrations, 2),
                    key=lambda pair: -(pair[0].num_inliers + pair[1].num_inliers))
     for a, b in pairs:
-        if a.num_inliers + b.num_inliers < options.registration.abs_pose_min_num_inliers:
+        if a.num_inliers + b.num_inliers < registration.abs_pose_min_num_inliers:
             break
-        similarity = similarity_from(a, b, options.merging.max_angle_deg)
+        similarity = similarity_from(a, b, merging.max_angle_deg)
         if similarity is not None:
             return similarity, (a, b)
     return None
 
 
 def cross_register(image_model: Model, image_id: int, points_model: Model,
-                   raw_graph: dict[int, dict[int, np.ndarray]], options: MapperOptions,
-                   into_target: bool) -> CrossRegistration | None:
+                   raw_graph: dict[int, dict[int, np.ndarray]],
+                   registration: RegistrationOptions, guided: GuidedMatchingOptions,
+                   seed: int | None, into_target: bool) -> CrossRegistration | None:
     """P3P of an image of `image_model` on descriptor matches to the points that
     `points_model` has in the images it shares raw matches with; None if none or no pose.
     `into_target` says whether `points_model` is the target of the similarity."""
     neighbours = [i for i in raw_graph.get(image_id, {}) if points_model.is_registered(i)]
     kps, point_ids = _descriptor_correspondences(image_model, image_id, points_model, neighbours,
-                                                 options.guided_matching.max_descriptor_distance)
+                                                 guided.max_descriptor_distance)
     if len(kps) < MIN_CROSS_INLIERS:
         return None
     try:
         result = solvers.absolute_pose(
             image_model.rays[image_id][kps], points_model.xyz[point_ids],
-            max_error=options.registration.abs_pose_max_error_px *
+            max_error=registration.abs_pose_max_error_px *
             image_model.pixel_angles[image_id][kps],
-            min_num_inliers=MIN_CROSS_INLIERS, seed=options.seed)
+            min_num_inliers=MIN_CROSS_INLIERS, seed=seed)
     except solvers.EstimationError:
         return None
     own_pose, other_pose = image_model.pose(image_id), result.cam_from_world

@@ -8,7 +8,7 @@ what they are is measured in BENCHMARKS.md ("Why the defaults").
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, fields, replace
+from dataclasses import dataclass, field, fields
 
 # Registration orders: COLMAP's (the image seeing most model points first) and the
 # paper's (the image next in name order to a registered one).
@@ -300,16 +300,6 @@ class MapperOptions:
             return self.num_threads
         return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") \
             else os.cpu_count() or 1
-
-    def choosing_initial_pair(self, image_ids: list[int] | None = None) -> MapperOptions:
-        """These options for a model over `image_ids` (None: a later model): a requested
-        initial pair starts it only if it holds both images and is the first model;
-        otherwise the mapper chooses the pair, as COLMAP's does for its later models."""
-        requested = self.initialization.image_id1, self.initialization.image_id2
-        if image_ids is not None and set(requested) <= set(image_ids):
-            return self
-        return replace(self, initialization=replace(self.initialization,
-                                                    image_id1=-1, image_id2=-1))
 
     def components(self) -> dict[str, object]:
         """The component options by field name."""

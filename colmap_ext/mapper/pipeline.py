@@ -10,6 +10,7 @@ import itertools
 import logging
 import time
 from collections import defaultdict
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -18,14 +19,14 @@ from tqdm import tqdm
 
 from colmap_ext.database import DatabaseContents, read_database
 from colmap_ext.errors import UserError
-from colmap_ext.mapper.bundle_adjustment import bundle_adjust
 from colmap_ext.mapper.descriptors import NearestDescriptors
 from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.filtering import (error_limit, filter_images, filter_points,
-                                          median_reprojection_error)
+from colmap_ext.mapper.filtering import filter_images, filter_points
+from colmap_ext.mapper.refinement import (MatchGraphs, ModelAdjuster, refine_joined,
+                                          retriangulate, triangulate_images)
 from colmap_ext.mapper.registration import (Correspondences, Outcome,
                                             descriptor_correspondences, register_frame,
                                             track_correspondences)
@@ -53,21 +54,15 @@ class IncrementalMapper:
         # cluster of the hierarchical mapper, which adjusts the joined model as a whole).
         self.final_adjustment = final_adjustment
         self.matches = matches
-        self.graph = pair_graph(matches)
-        # Raw matches of every pair, verified or not: putative 2D-3D correspondences for
-        # P3P RANSAC, which bridges pairs whose two-view verification failed.
-        self.raw_graph = pair_graph({p: m for p, m in model.db.raw_matches.items()
-                                     if p[0] in model.point_of and p[1] in model.point_of})
+        self.graphs = MatchGraphs.of(model, matches)
         self.options = options
         self.timer = timer
+        self.adjuster = ModelAdjuster.of(model, options, timer)
         self.progress = progress
         self.sequence_index = {image_id: i for i, image_id in enumerate(
             sorted(model.image_ids, key=lambda i: model.db.images[i].name))}
         self.trials: dict[int, int] = defaultdict(int)
         self.num_images_at_global_ba = 0
-        # The robust loss's scale, raised where the measured noise reaches it (see
-        # BundleAdjustmentOptions.noise_loss_scale_ratio); set at each global adjustment.
-        self.loss_scale_px = options.bundle_adjustment.loss_scale_px
         # Per unregistered image: model points it sees through verified matches, kept
         # between rounds and counted again only when a neighbour's observations change.
         self._visible: dict[int, int] = {}
@@ -83,7 +78,7 @@ class IncrementalMapper:
                        np.array([len(m) for m in pairs.values()]),
                        np.concatenate([m[:, 1].astype(flat_type) + model.flat_offset[other]
                                        for other, m in pairs.items()]))
-            for image_id, pairs in self.graph.items() if pairs}
+            for image_id, pairs in self.graphs.verified.items() if pairs}
 
     def run(self, excluded_pairs: set[Pair]) -> bool:
         """Reconstruct from the best initial pair, or go on from the model's registered
@@ -96,73 +91,33 @@ class IncrementalMapper:
         while self._register_next():
             pass
         if self.final_adjustment:
-            self._global_adjustment(final=True)
+            self.adjuster.global_adjustment(final=True)
         else:
             with self.timer("filtering"):
-                filter_points(self.model, self.model.registered, self.options, final=True)
+                filter_points(self.model, self.model.registered, self.options.filtering,
+                              final=True)
         return True
 
     def _initialize(self, excluded_pairs: set[Pair]) -> bool:
+        options = self.options
         with self.timer("initial pair"):
-            two_view = choose_initial_pair(self.model, self.matches, self.options, excluded_pairs)
-        if two_view is None:
+            initial = choose_initial_pair(self.model, self.matches, options.initialization,
+                                          options.two_view, options.triangulation,
+                                          excluded_pairs, options.seed)
+        if initial is None:
             return False
-        initialize(self.model, two_view)
+        initialize(self.model, initial)
         with self.timer("triangulation"):
             # Every image of the second frame against every image of both frames (a
             # rig's other cameras see across its baseline too).
             registered = self.model.registered
-            for image_id in self.model.frame_images(two_view.pair[1]):
+            for image_id in self.model.frame_images(initial.pair[1]):
                 triangulate_image(self.model, image_id,
                                   [other for other in registered if other != image_id],
-                                  self.options, min_views=2)
+                                  options.guided_matching, options.triangulation, min_views=2)
         self._global_adjustment()
         self._advance(self.model.num_registered)
         return True
-
-    def refine_joined(self) -> None:
-        """Adjust a model joined from two (merging.py): global adjustment, then rounds
-        of retriangulation and global adjustment. Retriangulation is guided matching of
-        every image against its neighbours, which now include the images across the
-        junction; the better poses of each round let the next match more of them."""
-        self._global_adjustment()
-        num_images = self.options.guided_matching.num_images
-        for _ in range(self.options.merging.refinement_rounds):
-            with self.timer("triangulation"):
-                for image_id in self.model.registered:
-                    triangulate_image(self.model, image_id,
-                                      self._neighbours(image_id, num_images),
-                                      self.options, min_views=2)
-            self._global_adjustment(final=True)
-
-    def retriangulate(self) -> int:
-        """Triangulate the finished model's points again from its poses, then adjust it
-        (final). The points it grew with were accepted within max_reproj_error_px while
-        the poses were still moving; again from the final poses, each observation must lie
-        within retriangulation_max_error_ratio x the model's median reprojection error
-        (filtering.error_limit), which leaves out the near-miss matches. Returns the
-        number of points."""
-        model, options = self.model, self.options
-        registered = model.registered
-        limit = error_limit(options.triangulation.max_reproj_error_px,
-                            median_reprojection_error(model, registered), options,
-                            options.triangulation.retriangulation_max_error_ratio)
-        strict = dataclasses.replace(options, triangulation=dataclasses.replace(
-            options.triangulation, max_reproj_error_px=limit))
-        with self.timer("triangulation"):
-            for point_id in model.point_ids:
-                model.delete_point(point_id)
-            for image_id in model.registration_order:
-                triangulate_image(model, image_id,
-                                  self._neighbours(image_id, options.guided_matching.num_images),
-                                  strict, min_views=2)
-        with self.timer("filtering"):
-            # The points the final filter would drop anyway (two-view tracks, narrow
-            # angles) go first: the adjustment then solves the model's size, not twice it.
-            filter_points(model, registered, options, final=True)
-        # One round: the observations are fresh, and a second changed nothing measured.
-        self._global_adjustment(final=True, rounds=1)
-        return model.reconstruction.num_points3D()
 
     def _advance(self, n: int) -> None:
         if self.progress is not None:
@@ -174,14 +129,14 @@ class IncrementalMapper:
         changed = model.take_changed()
         registered = model.registered
         for image_id in changed.intersection(registered):
-            self._connected.update(self.raw_graph.get(image_id, {}))
+            self._connected.update(self.graphs.raw.get(image_id, {}))
         is_registered = np.zeros(max(model.image_ids) + 1, bool)
         is_registered[registered] = True
         unregistered = [i for i in model.image_ids if not is_registered[i]
                         and self.trials[i] < self.options.registration.max_trials
                         and i in self._connected]
         for i in unregistered:
-            if i not in self._visible or not changed.isdisjoint(self.graph.get(i, {})):
+            if i not in self._visible or not changed.isdisjoint(self.graphs.verified.get(i, {})):
                 self._visible[i] = self._count_visible(i, is_registered)
         visible = self._visible
         if self.options.registration.order == "sequence":
@@ -212,18 +167,6 @@ class IncrementalMapper:
         count = int(np.count_nonzero(self._marked))
         self._marked[points] = False
         return count
-
-    def _neighbours(self, image_id: int, limit: int) -> list[int]:
-        """Registered images most connected to `image_id`: shared points, then matches."""
-        model = self.model
-        shared = model.covisible_images(image_id) if model.is_registered(image_id) else {}
-        verified = {o: len(m) for o, m in self.graph.get(image_id, {}).items()
-                    if model.is_registered(o)}
-        raw = {o: len(m) for o, m in self.raw_graph.get(image_id, {}).items()
-               if model.is_registered(o)}
-        others = set(shared) | set(verified) or set(raw)
-        return sorted(others, key=lambda o: (
-            -shared.get(o, 0), -verified.get(o, 0), -raw.get(o, 0)))[:limit]
 
     def _register_next(self) -> bool:
         for image_id in self._candidates()[:MAX_CANDIDATES_PER_ROUND]:
@@ -262,69 +205,45 @@ class IncrementalMapper:
         (descriptor matches on repeated texture can pull it away); too few inliers,
         through raw matches too (pairs whose two-view verification failed can still hold
         enough inliers for an absolute pose)."""
-        model, options = self.model, self.options
+        model, graphs, options = self.model, self.graphs, self.options
+        guided = options.guided_matching
+
+        def register(correspondences: Correspondences) -> Outcome:
+            return register_frame(model, correspondences, graphs.verified, options.registration,
+                                  options.seed)
+
         image_ids = model.frame_images(image_id)
         descriptor = {i: descriptor_correspondences(
-            model, i, self._neighbours(i, options.guided_matching.num_images), options)
+            model, i, graphs.neighbours(model, i, guided.num_images), guided)
             for i in image_ids}
-        verified = {i: track_correspondences(model, i, self.graph) for i in image_ids}
-        outcome = register_frame(model, _joined(descriptor, verified), self.graph, options)
+        verified = {i: track_correspondences(model, i, graphs.verified) for i in image_ids}
+        outcome = register(_joined(descriptor, verified))
         if outcome is Outcome.INCONSISTENT:
-            outcome = register_frame(model, verified, self.graph, options)
+            outcome = register(verified)
         elif outcome is Outcome.TOO_FEW_INLIERS:
-            raw = {i: track_correspondences(model, i, self.raw_graph) for i in image_ids}
+            raw = {i: track_correspondences(model, i, graphs.raw) for i in image_ids}
             if any(len(kps) for kps, _ in raw.values()):
-                outcome = register_frame(model, _joined(descriptor, verified, raw), self.graph,
-                                         options)
+                outcome = register(_joined(descriptor, verified, raw))
         return outcome is Outcome.REGISTERED
 
     def _after_registration(self, image_id: int) -> None:
         options = self.options
         image_ids = self.model.frame_images(image_id)
         with self.timer("triangulation"):
-            for new_id in image_ids:
-                neighbours = self._neighbours(new_id, options.guided_matching.num_images)
-                triangulate_image(self.model, new_id, neighbours, options, min_views=2)
+            triangulate_images(self.model, image_ids, self.graphs, options.guided_matching,
+                               options.triangulation)
         ratio = options.bundle_adjustment.global_images_ratio
         if self.model.num_registered >= ratio * self.num_images_at_global_ba:
             self._global_adjustment()
             return
-        local = image_ids + [other for other in self._neighbours(
-            image_id, options.bundle_adjustment.local_num_images) if other not in image_ids]
-        self._bundle_adjust(local, options.bundle_adjustment.local_max_iterations)
-        with self.timer("filtering"):
-            filter_points(self.model, local, options)
+        local = image_ids + [other for other in self.graphs.neighbours(
+            self.model, image_id, options.bundle_adjustment.local_num_images)
+            if other not in image_ids]
+        self.adjuster.local_adjustment(local)
 
-    def _global_adjustment(self, final: bool = False, rounds: int = 2) -> None:
-        """Adjust every registered image, then filter. `final`, the model's end: `rounds`
-        rounds, their filter also relative to the model's median error
-        (final_max_error_ratio), and one more adjustment on what the last filter kept,
-        with the final loss (BundleAdjustmentOptions.final_loss), if that filter dropped
-        observations or the final loss is not the robust one."""
-        model, options = self.model, self.options
-        ba = options.bundle_adjustment
-        registered = model.registered
-        ratio = options.filtering.final_max_error_ratio if final else 0.0
-        for _ in range(rounds if final else 1):
-            with self.timer("filtering"):
-                self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio *
-                                         median_reprojection_error(model, registered))
-            self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True)
-            with self.timer("filtering"):
-                removed, _ = filter_points(model, registered, options, final=final,
-                                           max_error_ratio=ratio)
-        if final and (ratio > 0 and removed or ba.final_loss != ba.loss):
-            self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True,
-                                loss=ba.final_loss)
-        self.num_images_at_global_ba = model.num_registered
-
-    def _bundle_adjust(self, image_ids: list[int], max_iterations: int,
-                       refine_intrinsics: bool = False, loss: str | None = None) -> None:
-        with self.timer("bundle adjustment"):
-            iterations = bundle_adjust(self.model, image_ids, self.options, max_iterations,
-                                       refine_intrinsics, loss, self.loss_scale_px)
-        self.timer.counts["bundle adjustment solves"] += 1
-        self.timer.counts["bundle adjustment iterations"] += iterations
+    def _global_adjustment(self) -> None:
+        self.adjuster.global_adjustment()
+        self.num_images_at_global_ba = self.model.num_registered
 
 
 def _joined(*correspondences: Correspondences) -> Correspondences:
@@ -354,7 +273,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
                                  options.guided_matching.max_search_pairs)
     with timer("two-view geometry"):
         model = Model(db, nearest, image_ids)
-        matches = verified_matches(model, options, progress)
+        matches = verified_matches(model, options.two_view, options.seed, progress)
     if existing is not None:
         _continue_from(model, existing, existing_ids, options.fix_existing_images)
     all_matches = matches
@@ -374,17 +293,17 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
                 timer.counts["models below min_model_size"] += 1
             remaining = [i for i in remaining if not model.is_registered(i)]
             model = Model(db, nearest, remaining)
-            options = options.choosing_initial_pair()
+            options = options_for_model(options)
             matches = {p: m for p, m in matches.items() if p[0] in remaining and p[1] in remaining}
     finally:
         bar.close()
     models = merge_models(models, all_matches, options, timer)
     if final_adjustment and options.triangulation.retriangulates:
         for model in models:
-            _refiner(model, all_matches, options, timer).retriangulate()
+            retriangulate(model, all_matches, options, timer)
     with timer("filtering"):
         for model in models:
-            filter_images(model, options)
+            filter_images(model, options.filtering)
     timer.counts["models below min_model_size"] += sum(
         m.num_registered < options.min_model_size for m in models)
     models = [m for m in models if m.num_registered >= options.min_model_size]
@@ -405,25 +324,31 @@ def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: 
     while True:
         for target, source in itertools.combinations(models, 2):
             with timer("merging"):
-                found = find_similarity(target, source, raw_graph, options)
+                found = find_similarity(target, source, raw_graph, options.merging,
+                                        options.registration, options.guided_matching,
+                                        options.seed)
             if found is not None:
                 break
         else:
             return models
         with timer("merging"):
             joined = join(target, source, *found)
-        _refiner(joined, matches, options, timer).refine_joined()
+        refine_joined(joined, matches, options, timer)
         models = sorted([m for m in models if m is not target and m is not source] + [joined],
                         key=lambda model: (not model.fixed_frame_ids, -model.num_registered))
 
 
-def _refiner(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
-             timer: StageTimer) -> IncrementalMapper:
-    """An IncrementalMapper over a finished model's images, to refine it."""
-    images = set(model.image_ids)
-    return IncrementalMapper(model, {p: m for p, m in matches.items()
-                                     if p[0] in images and p[1] in images},
-                             options, timer, None)
+def options_for_model(options: MapperOptions,
+                      image_ids: Collection[int] | None = None) -> MapperOptions:
+    """The options for a model over `image_ids` (None: a later model): a requested
+    initial pair starts it only if it holds both images and is the first model;
+    otherwise the mapper chooses the pair, as COLMAP's does for its later models."""
+    initialization = options.initialization
+    if image_ids is not None and \
+            {initialization.image_id1, initialization.image_id2} <= set(image_ids):
+        return options
+    return dataclasses.replace(options, initialization=dataclasses.replace(
+        initialization, image_id1=-1, image_id2=-1))
 
 
 def _existing_image_ids(db: DatabaseContents,

@@ -13,7 +13,7 @@ import solvers
 from colmap_ext.geometry import sampson_angles
 from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import GuidedMatchingOptions, RegistrationOptions
 
 
 class Outcome(enum.Enum):
@@ -44,7 +44,7 @@ def track_correspondences(model: Model, image_id: int,
 
 
 def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int],
-                               options: MapperOptions) -> tuple[np.ndarray, np.ndarray]:
+                               guided: GuidedMatchingOptions) -> tuple[np.ndarray, np.ndarray]:
     """(keypoints, point ids) by matching descriptors against the observations of
     points in nearby registered images, with the ratio test."""
     if len(model.keypoints[image_id]) == 0:
@@ -55,7 +55,7 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
                                                     for other_id, other_kps, _ in observed], 2)
     kps, point_ids = [], []
     for (_, _, other_points), (index, angles) in zip(observed, found):
-        ok = (angles[:, 0] <= options.guided_matching.max_descriptor_distance) & \
+        ok = (angles[:, 0] <= guided.max_descriptor_distance) & \
              (angles[:, 0] < MAX_RATIO * angles[:, 1])
         kps.append(np.flatnonzero(ok))
         point_ids.append(other_points[index[ok, 0]])
@@ -68,7 +68,8 @@ Correspondences = dict[int, tuple[np.ndarray, np.ndarray]]  # image id -> (keypo
 
 
 def register_frame(model: Model, correspondences: Correspondences,
-                   graph: dict[int, dict[int, np.ndarray]], options: MapperOptions) -> Outcome:
+                   graph: dict[int, dict[int, np.ndarray]], registration: RegistrationOptions,
+                   seed: int | None) -> Outcome:
     """Estimate the pose of a frame from the 2D-3D correspondences of its images (P3P for
     an image alone in its frame, GP3P for a rig's images, both OpenGV's, refined on the
     inliers), then add the inliers to the points' tracks (per image, one keypoint per
@@ -76,8 +77,8 @@ def register_frame(model: Model, correspondences: Correspondences,
 
     The pose must also keep the images' verified matches (`graph`) to registered images
     on their epipolar lines (epipolar_support): on repeated texture, wrong
-    correspondences can agree on a wrong pose with more inliers than the right one."""
-    registration = options.registration
+    correspondences can agree on a wrong pose with more inliers than the right one.
+    `seed`: the RANSAC's (None: unseeded)."""
     pairs_of = {}
     for image_id, (kps, point_ids) in correspondences.items():
         pairs = np.unique(np.stack([kps, point_ids], axis=1), axis=0) if len(kps) else \
@@ -96,12 +97,12 @@ def register_frame(model: Model, correspondences: Correspondences,
         if len(image_ids) == 1:
             result = solvers.absolute_pose(
                 rays, model.xyz[pairs[:, 1]], max_error=max_error,
-                min_num_inliers=registration.abs_pose_min_num_inliers, seed=options.seed)
+                min_num_inliers=registration.abs_pose_min_num_inliers, seed=seed)
             rig_from_world = cams_from_rig[0].inverse() * result.cam_from_world
         else:
             result = solvers.generalized_absolute_pose(
                 rays, camera_index, model.xyz[pairs[:, 1]], cams_from_rig, max_error=max_error,
-                min_num_inliers=registration.abs_pose_min_num_inliers, seed=options.seed)
+                min_num_inliers=registration.abs_pose_min_num_inliers, seed=seed)
             rig_from_world = result.rig_from_world
     except solvers.EstimationError:
         return Outcome.TOO_FEW_INLIERS
@@ -109,38 +110,41 @@ def register_frame(model: Model, correspondences: Correspondences,
     if result.num_inliers < registration.abs_pose_min_inlier_ratio * num_keypoints:
         return Outcome.TOO_FEW_INLIERS
     cams_from_world = [cam_from_rig * rig_from_world for cam_from_rig in cams_from_rig]
-    if epipolar_support(model, dict(zip(image_ids, cams_from_world)), graph, options) < \
+    if epipolar_support(model, dict(zip(image_ids, cams_from_world)), graph, registration) < \
             registration.min_epipolar_support:
         return Outcome.INCONSISTENT
     model.register_frame(image_ids[0], rig_from_world)
     for k, image_id in enumerate(image_ids):
-        _add_inliers(model, image_id, pairs[result.inlier_mask & (camera_index == k)], options)
+        _add_inliers(model, image_id, pairs[result.inlier_mask & (camera_index == k)],
+                     registration.abs_pose_max_error_px)
     return Outcome.REGISTERED
 
 
 def _add_inliers(model: Model, image_id: int, inliers: np.ndarray,
-                 options: MapperOptions) -> None:
-    """Add a registered image's (keypoint, point id) inliers to the tracks."""
+                 max_error_px: float) -> None:
+    """Add a registered image's (keypoint, point id) inliers reprojecting within
+    `max_error_px` to the tracks."""
     kps, point_ids = inliers[:, 0], inliers[:, 1]
     errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
     observed = set(model.observations(image_id)[1].tolist())
     for i in np.argsort(errors, kind="stable"):
         kp, point_id = int(kps[i]), int(point_ids[i])
         if model.point_of[image_id][kp] < 0 and point_id not in observed \
-                and errors[i] <= options.registration.abs_pose_max_error_px:
+                and errors[i] <= max_error_px:
             model.add_observation(point_id, image_id, kp)
             observed.add(point_id)
 
 
 def epipolar_support(model: Model, cams_from_world: dict[int, pycolmap.Rigid3d],
-                     graph: dict[int, dict[int, np.ndarray]], options: MapperOptions) -> float:
+                     graph: dict[int, dict[int, np.ndarray]],
+                     registration: RegistrationOptions) -> float:
     """The fraction of the images' verified matches to registered images that the poses
     `cams_from_world` (image id -> pose) keep within abs_pose_max_error_px of their
     epipolar lines (1 without such matches).
 
     Verified matches are true far more often than the pair's own relative pose is right
     (near-planar pairs), so they check a pose where 2D-3D inliers alone cannot."""
-    max_error_px = options.registration.abs_pose_max_error_px
+    max_error_px = registration.abs_pose_max_error_px
     consistent = total = 0
     for image_id, cam_from_world in cams_from_world.items():
         for other_id, matches in graph.get(image_id, {}).items():

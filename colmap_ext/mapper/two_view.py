@@ -11,15 +11,16 @@ from tqdm import tqdm
 import solvers
 from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import TwoViewOptions
 
 Pair = tuple[int, int]
 
 
-def verified_matches(model: Model, options: MapperOptions,
+def verified_matches(model: Model, two_view: TwoViewOptions, seed: int | None,
                      progress: bool = True) -> dict[Pair, np.ndarray]:
     """(id1, id2) -> (m, 2) inlier keypoint indices, for the model's images; matches
-    of keypoints that their camera model gives no ray are left out."""
+    of keypoints that their camera model gives no ray are left out. `seed`: the
+    RANSAC's of pairs the database left unverified (None: unseeded)."""
     db = model.db
     wanted = set(model.image_ids)
     if db.verified_matches:
@@ -27,34 +28,42 @@ def verified_matches(model: Model, options: MapperOptions,
                      for pair, m in db.verified_matches.items()
                      if pair[0] in wanted and pair[1] in wanted}
         return {pair: m for pair, m in with_rays.items()
-                if len(m) >= options.two_view.min_num_inliers}
+                if len(m) >= two_view.min_num_inliers}
     pairs = {pair: m for pair, m in db.raw_matches.items()
              if pair[0] in wanted and pair[1] in wanted}
     verified: dict[Pair, np.ndarray] = {}
     for (id1, id2), matches in tqdm(pairs.items(), desc="verifying pairs", unit="pair",
                                     disable=not progress, leave=False):
         inliers = verify_pair(model, id1, id2, with_rays_only(model, (id1, id2), matches),
-                              options)
+                              two_view, seed)
         if inliers is not None:
             verified[(id1, id2)] = inliers
     return verified
 
 
 def verify_pair(model: Model, id1: int, id2: int, matches: np.ndarray,
-                options: MapperOptions) -> np.ndarray | None:
+                two_view: TwoViewOptions, seed: int | None) -> np.ndarray | None:
     """The matches consistent with one calibrated relative pose, or None."""
-    if len(matches) < max(5, options.two_view.min_num_inliers):
+    if len(matches) < max(5, two_view.min_num_inliers):
         return None
+    result = relative_pose(model, (id1, id2), matches, two_view.max_error_px,
+                           two_view.min_num_inliers, seed)
+    return None if result is None else matches[result.inlier_mask]
+
+
+def relative_pose(model: Model, pair: Pair, matches: np.ndarray, max_error_px: float,
+                  min_num_inliers: int, seed: int | None) -> solvers.RelativePoseResult | None:
+    """The 5-point RANSAC's relative pose of a pair from its matches' rays, the pixel
+    threshold turned into each match's angle (pair_pixel_angles); None where it fails."""
+    id1, id2 = pair
     try:
-        result = solvers.relative_pose(
+        return solvers.relative_pose(
             model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]],
-            max_error=options.two_view.max_error_px * pair_pixel_angles(
-                model, id1, matches[:, 0], id2, matches[:, 1]),
-            min_num_inliers=options.two_view.min_num_inliers,
-            seed=options.seed)
+            max_error=max_error_px * pair_pixel_angles(model, id1, matches[:, 0], id2,
+                                                       matches[:, 1]),
+            min_num_inliers=min_num_inliers, seed=seed)
     except solvers.EstimationError:
         return None
-    return matches[result.inlier_mask]
 
 
 def with_rays_only(model: Model, pair: Pair, matches: np.ndarray) -> np.ndarray:

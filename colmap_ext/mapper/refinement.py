@@ -1,0 +1,164 @@
+"""What the incremental loop (pipeline.py) and the refinement of a finished model share:
+the match graphs that choose an image's neighbours, triangulation of images against
+their neighbours, and bundle adjustment with its filtering. Refinement is two
+functions: after a merge (`refine_joined`) and at a model's end (`retriangulate`)."""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+
+from colmap_ext.mapper.bundle_adjustment import bundle_adjust
+from colmap_ext.mapper.filtering import error_limit, filter_points, median_reprojection_error
+from colmap_ext.mapper.model import Model
+from colmap_ext.mapper.options import (BundleAdjustmentOptions, FilteringOptions,
+                                       GuidedMatchingOptions, MapperOptions,
+                                       TriangulationOptions)
+from colmap_ext.mapper.triangulation import triangulate_image
+from colmap_ext.mapper.two_view import Pair, pair_graph
+from colmap_ext.timing import StageTimer
+
+
+@dataclass
+class MatchGraphs:
+    """A model's images' matches as graphs (two_view.pair_graph): the verified ones, and
+    the raw ones, verified or not: putative 2D-3D correspondences for P3P RANSAC, which
+    bridges pairs whose two-view verification failed."""
+
+    verified: dict[int, dict[int, np.ndarray]]
+    raw: dict[int, dict[int, np.ndarray]]
+
+    @classmethod
+    def of(cls, model: Model, matches: dict[Pair, np.ndarray]) -> MatchGraphs:
+        """The graphs of `matches` (verified) and the database's raw matches, between
+        the model's images."""
+        def within(pairs: dict[Pair, np.ndarray]) -> dict[Pair, np.ndarray]:
+            return {p: m for p, m in pairs.items()
+                    if p[0] in model.point_of and p[1] in model.point_of}
+        return cls(pair_graph(within(matches)), pair_graph(within(model.db.raw_matches)))
+
+    def neighbours(self, model: Model, image_id: int, limit: int) -> list[int]:
+        """Registered images most connected to `image_id`: shared points, then matches."""
+        shared = model.covisible_images(image_id) if model.is_registered(image_id) else {}
+        verified = {o: len(m) for o, m in self.verified.get(image_id, {}).items()
+                    if model.is_registered(o)}
+        raw = {o: len(m) for o, m in self.raw.get(image_id, {}).items()
+               if model.is_registered(o)}
+        others = set(shared) | set(verified) or set(raw)
+        return sorted(others, key=lambda o: (
+            -shared.get(o, 0), -verified.get(o, 0), -raw.get(o, 0)))[:limit]
+
+
+def triangulate_images(model: Model, image_ids: Iterable[int], graphs: MatchGraphs,
+                       guided: GuidedMatchingOptions, triangulation: TriangulationOptions) -> None:
+    """Triangulate each image, in turn, against its guided_matching.num_images neighbours
+    (chosen as it comes: the images before it may have added shared points)."""
+    for image_id in image_ids:
+        triangulate_image(model, image_id, graphs.neighbours(model, image_id, guided.num_images),
+                          guided, triangulation, min_views=2)
+
+
+class ModelAdjuster:
+    """Bundle adjustment of one model, each solve followed by its filtering, timed. The
+    robust loss's scale is raised where the measured noise reaches it (see
+    BundleAdjustmentOptions.noise_loss_scale_ratio): set at each global adjustment, kept
+    for the local ones after it."""
+
+    def __init__(self, model: Model, ba: BundleAdjustmentOptions, filtering: FilteringOptions,
+                 num_threads: int, timer: StageTimer) -> None:
+        self.model = model
+        self.ba = ba
+        self.filtering = filtering
+        self.num_threads = num_threads
+        self.timer = timer
+        self.loss_scale_px = ba.loss_scale_px
+
+    @classmethod
+    def of(cls, model: Model, options: MapperOptions, timer: StageTimer) -> ModelAdjuster:
+        """The adjuster of `model` with the options' components and threads."""
+        return cls(model, options.bundle_adjustment, options.filtering, options.threads(), timer)
+
+    def local_adjustment(self, image_ids: list[int]) -> None:
+        """Adjust `image_ids` (bundle_adjust's local rule for the points), then filter them."""
+        self._bundle_adjust(image_ids, self.ba.local_max_iterations)
+        with self.timer("filtering"):
+            filter_points(self.model, image_ids, self.filtering)
+
+    def global_adjustment(self, final: bool = False, rounds: int = 2) -> None:
+        """Adjust every registered image, then filter. `final`, the model's end: `rounds`
+        rounds, their filter also relative to the model's median error
+        (final_max_error_ratio), and one more adjustment on what the last filter kept,
+        with the final loss (BundleAdjustmentOptions.final_loss), if that filter dropped
+        observations or the final loss is not the robust one."""
+        model, ba = self.model, self.ba
+        registered = model.registered
+        ratio = self.filtering.final_max_error_ratio if final else 0.0
+        for _ in range(rounds if final else 1):
+            with self.timer("filtering"):
+                self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio *
+                                         median_reprojection_error(model, registered))
+            self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True)
+            with self.timer("filtering"):
+                removed, _ = filter_points(model, registered, self.filtering, final=final,
+                                           max_error_ratio=ratio)
+        if final and (ratio > 0 and removed or ba.final_loss != ba.loss):
+            self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True,
+                                loss=ba.final_loss)
+
+    def _bundle_adjust(self, image_ids: list[int], max_iterations: int,
+                       refine_intrinsics: bool = False, loss: str | None = None) -> None:
+        with self.timer("bundle adjustment"):
+            iterations = bundle_adjust(self.model, image_ids, self.ba, max_iterations,
+                                       self.num_threads, refine_intrinsics, loss,
+                                       self.loss_scale_px)
+        self.timer.counts["bundle adjustment solves"] += 1
+        self.timer.counts["bundle adjustment iterations"] += iterations
+
+
+def refine_joined(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
+                  timer: StageTimer) -> None:
+    """Adjust a model joined from two (merging.py): global adjustment, then rounds
+    of retriangulation and global adjustment. Retriangulation is guided matching of
+    every image against its neighbours, which now include the images across the
+    junction; the better poses of each round let the next match more of them."""
+    graphs = MatchGraphs.of(model, matches)
+    adjuster = ModelAdjuster.of(model, options, timer)
+    adjuster.global_adjustment()
+    for _ in range(options.merging.refinement_rounds):
+        with timer("triangulation"):
+            triangulate_images(model, model.registered, graphs, options.guided_matching,
+                               options.triangulation)
+        adjuster.global_adjustment(final=True)
+
+
+def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
+                  timer: StageTimer) -> int:
+    """Triangulate the finished model's points again from its poses, then adjust it
+    (final). The points it grew with were accepted within max_reproj_error_px while
+    the poses were still moving; again from the final poses, each observation must lie
+    within retriangulation_max_error_ratio x the model's median reprojection error
+    (filtering.error_limit), which leaves out the near-miss matches. Returns the
+    number of points."""
+    graphs = MatchGraphs.of(model, matches)
+    registered = model.registered
+    triangulation = options.triangulation
+    limit = error_limit(triangulation.max_reproj_error_px,
+                        median_reprojection_error(model, registered),
+                        options.filtering.noise_max_error_ratio,
+                        triangulation.retriangulation_max_error_ratio)
+    strict = dataclasses.replace(triangulation, max_reproj_error_px=limit)
+    with timer("triangulation"):
+        for point_id in model.point_ids:
+            model.delete_point(point_id)
+        triangulate_images(model, model.registration_order, graphs, options.guided_matching,
+                           strict)
+    with timer("filtering"):
+        # The points the final filter would drop anyway (two-view tracks, narrow
+        # angles) go first: the adjustment then solves the model's size, not twice it.
+        filter_points(model, registered, options.filtering, final=True)
+    # One round: the observations are fresh, and a second changed nothing measured.
+    ModelAdjuster.of(model, options, timer).global_adjustment(final=True, rounds=1)
+    return model.reconstruction.num_points3D()
