@@ -454,8 +454,8 @@ def extract_cube_faces_to_memory(image_path: str | os.PathLike,
                                  num_threads: int) -> dict[str, Features]:
     """Keypoints (in panorama pixels) and descriptors of the panoramas `names`, from
     pycolmap's extractor on their cube faces: each face's own keypoints (panorama.py), not
-    under the panorama's mask, and of them the MAX_NUM_FEATURES largest, as COLMAP keeps
-    on one image."""
+    under the panorama's mask, and of them the MAX_NUM_FEATURES largest detections, as
+    COLMAP keeps on one image."""
     face_names = {name: [f"{index}_{face}.png" for face in range(len(FACE_FORWARD_DOWN))]
                   for index, name in enumerate(names)}
     with tempfile.TemporaryDirectory(prefix="colmap-ext-cube-faces-") as scratch:
@@ -484,13 +484,22 @@ def extract_cube_faces_to_memory(image_path: str | os.PathLike,
             keypoints.append(mapped[owned])
             descriptors.append(np.asarray(face_descriptors.data, np.uint8)[owned])
         all_keypoints, all_descriptors = np.concatenate(keypoints), np.concatenate(descriptors)
-        kept = np.ones(len(all_keypoints), bool) if mask_path is None else \
-            inside_mask(read_grey(Path(mask_path) / f"{name}.png"), all_keypoints[:, :2])
-        largest = np.flatnonzero(kept)[
-            np.argsort(-keypoint_scales(all_keypoints[kept]), kind="stable")[:MAX_NUM_FEATURES]]
+        if mask_path is not None:
+            kept = inside_mask(read_grey(Path(mask_path) / f"{name}.png"), all_keypoints[:, :2])
+            all_keypoints, all_descriptors = all_keypoints[kept], all_descriptors[kept]
+        largest = largest_detections(all_keypoints, MAX_NUM_FEATURES)
         features[name] = (all_keypoints[largest], pycolmap.FeatureDescriptors(
             pycolmap.FeatureExtractorType.SIFT, all_descriptors[largest]))
     return features
+
+
+def largest_detections(keypoints: np.ndarray, max_num_features: int) -> np.ndarray:
+    """Which keypoints (n, 6) belong to the `max_num_features` largest detections, as COLMAP
+    counts them: the keypoints of one place (its orientations) are one detection."""
+    _, detection = np.unique(keypoints[:, :2], axis=0, return_inverse=True)
+    scales = np.zeros(detection.max(initial=-1) + 1)
+    np.maximum.at(scales, detection, keypoint_scales(keypoints))
+    return np.isin(detection, np.argsort(-scales, kind="stable")[:max_num_features])
 
 
 def read_grey(path: Path) -> np.ndarray:
