@@ -16,13 +16,12 @@ and a 360-degree image set end to end.
    reprojection error, the agreement of the per-image rotations relative to the first
    image with COLMAP's, and the times. On rendered panoramas with known poses (the
    synthetic ring scene seen by an EQUIRECTANGULAR camera) also R_err; with --data, on
-   `360_flat` (photographs, no ground truth), or on `--flat_360_width` wide copies of them.
+   `360_flat` (photographs, no ground truth).
 
 Writes the `cameras` section at the end of BENCHMARKS.md and prints it.
 
     python benchmarks/cameras.py [--models EQUIRECTANGULAR,...] [--seeds 0,1,2,3,4]
-        [--data $COLMAP_EXT_DATA] [--flat_360_width W] [--work_dir DIR]
-        [--markdown BENCHMARKS.md]
+        [--data $COLMAP_EXT_DATA] [--work_dir DIR] [--markdown BENCHMARKS.md]
 
 With --loss_probe LOSS (and the --work_dir of an earlier run), ours runs again on each
 generated database with that bundle adjustment loss (MapperOptions.bundle_adjustment.loss),
@@ -199,19 +198,6 @@ def rendered_panoramas(work: Path) -> tuple[Path, Path]:
     return folder / "images", folder / "truth"
 
 
-def downscaled_copy(images: Path, width: int, work: Path) -> Path:
-    """The images of `images` scaled to `width` (INTER_AREA), made once in `work`."""
-    folder = work / f"{images.parent.name}_{width}"
-    folder.mkdir(parents=True, exist_ok=True)
-    for path in sorted(p for p in images.iterdir() if p.is_file()):
-        if not (folder / path.name).is_file():
-            image = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
-            scaled = cv2.resize(image, (width, width * image.shape[0] // image.shape[1]),
-                                interpolation=cv2.INTER_AREA)
-            cv2.imwrite(str(folder / path.name), scaled, [cv2.IMWRITE_JPEG_QUALITY, 95])
-    return folder
-
-
 def panorama_table(sets: list[dict]) -> str:
     def pair(values: tuple[float, float] | None) -> str:
         return "–" if values is None else f"{values[0]:.3f} / {values[1]:.3f}"
@@ -255,8 +241,6 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="0,1,2,3,4")
     parser.add_argument("--data", default=None,
                         help="folder holding 360_flat/ for the end-to-end run (skipped without)")
-    parser.add_argument("--flat_360_width", type=int, default=None,
-                        help="run 360_flat on copies of this width (default: the originals)")
     parser.add_argument("--work_dir", default=None)
     parser.add_argument("--markdown", default=str(REPO / "BENCHMARKS.md"))
     parser.add_argument("--loss_probe", default=None,
@@ -273,10 +257,8 @@ def main(argv: list[str] | None = None) -> int:
         rendered, truth = rendered_panoramas(work)
         panoramas = [run_panoramas(RENDERED_360[0], rendered, work, seeds[0], truth)]
         if args.data:
-            flat = Path(args.data) / FLAT_360 / "images"
-            if args.flat_360_width:
-                flat = downscaled_copy(flat, args.flat_360_width, work)
-            panoramas.append(run_panoramas(FLAT_360, flat, work, seeds[0]))
+            panoramas.append(run_panoramas(FLAT_360, Path(args.data) / FLAT_360 / "images",
+                                           work, seeds[0]))
         (work / "results.json").write_text(json.dumps({"generated": results,
                                                        "panoramas": panoramas}, indent=1))
     command = "python benchmarks/cameras.py " + " ".join(argv or sys.argv[1:])

@@ -154,7 +154,8 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
         "mask_path": features.mask_path, "segment": segment,
         "min_num_keypoints": features.min_num_keypoints,
         "domain_size_pooling": features.domain_size_pooling,
-        "panorama_features": features.panorama_features, "matcher": matching.matcher,
+        "panorama_features": features.panorama_features
+        if features.camera_model == "EQUIRECTANGULAR" else None, "matcher": matching.matcher,
         "exact_matching": matching.exact, "seed": matching.seed, "num_images": len(names)}}
 
     if segment is not None:
