@@ -471,10 +471,11 @@ def extract_cube_faces_to_memory(image_path: str | os.PathLike,
         # One extractor per face: pycolmap 4.2.1's CPU SIFT reuses its filter across images
         # of one size, and a face then loses keypoints after a face with few (a blob
         # found alone, missed after a near-empty face).
-        found = {face_name: extract_to_memory(scratch, reader, [face_name], peak_threshold,
-                                              domain_size_pooling=domain_size_pooling,
-                                              num_threads=num_threads)[face_name]
-                 for face_names_of_one in face_names.values() for face_name in face_names_of_one}
+        found: dict[str, Features] = {}
+        for face_name in (face_name for of_one in face_names.values() for face_name in of_one):
+            found.update(extract_to_memory(scratch, reader, [face_name], peak_threshold,
+                                           domain_size_pooling=domain_size_pooling,
+                                           num_threads=num_threads))
     features: dict[str, Features] = {}
     for name in names:
         keypoints, descriptors = [], []
@@ -497,6 +498,7 @@ def largest_detections(keypoints: np.ndarray, max_num_features: int) -> np.ndarr
     """Which keypoints (n, 6) belong to the `max_num_features` largest detections, as COLMAP
     counts them: the keypoints of one place (its orientations) are one detection."""
     _, detection = np.unique(keypoints[:, :2], axis=0, return_inverse=True)
+    detection = detection.reshape(-1)
     scales = np.zeros(detection.max(initial=-1) + 1)
     np.maximum.at(scales, detection, keypoint_scales(keypoints))
     return np.isin(detection, np.argsort(-scales, kind="stable")[:max_num_features])

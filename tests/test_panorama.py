@@ -63,14 +63,15 @@ def extract(tmp_path, mask_path=None) -> np.ndarray:
 
 
 def test_cube_face_keypoints_land_on_their_panorama_pixels(tmp_path):
-    """Every blob is found within 1 px of its projection into the panorama, also where it
-    lies on an edge between faces, across the panorama's seam or near a pole."""
+    """Every blob is found within 0.5 px of its projection into the panorama (measured:
+    0.2 px; half a pixel off in the faces' sampling fails), also where it lies on an edge
+    between faces, across the panorama's seam or near a pole."""
     directions = blob_directions()
     (tmp_path / "images").mkdir()
     cv2.imwrite(str(tmp_path / "images" / "panorama.png"), blob_panorama(directions))
     keypoints = extract(tmp_path)
     projections = CubeFaces.of_panorama(WIDTH, HEIGHT).camera.img_from_cam(directions)
-    assert wrapped_distances(keypoints[:, :2], projections).min(axis=0).max() < 1.0
+    assert wrapped_distances(keypoints[:, :2], projections).min(axis=0).max() < 0.5
 
 
 def test_a_blob_two_faces_see_is_kept_by_one(tmp_path):
@@ -112,20 +113,21 @@ def test_cube_face_keypoints_respect_the_panorama_mask(tmp_path):
 
 
 def test_reconstruct_on_cube_faces_registers_every_rendered_panorama(tmp_path):
-    """Six panoramas of the synthetic ring scene (1024 x 512, poses known): `reconstruct
-    --panorama_features cube_faces` puts all six in one model, every rotation within
-    0.1 deg of the truth (measured: 0.02 deg max), and records the choice."""
-    camera = pycolmap.Camera(camera_id=1, model="EQUIRECTANGULAR", width=WIDTH, height=HEIGHT,
-                             params=[WIDTH, HEIGHT])
-    scene = ring_scene(num_images=6, camera=camera)
+    """Five panoramas of the synthetic ring scene (768 x 384, poses known): `reconstruct
+    --panorama_features cube_faces` puts all five in one model, every rotation within
+    0.1 deg of the truth (measured: 0.022 deg max), and records the choice."""
+    width, height = 768, 384
+    camera = pycolmap.Camera(camera_id=1, model="EQUIRECTANGULAR", width=width, height=height,
+                             params=[width, height])
+    scene = ring_scene(num_images=5, camera=camera)
     render_images(scene, tmp_path / "images", supersample=1)
     summary = main(tmp_path / "images", tmp_path / "ws", "EQUIRECTANGULAR",
-                   f"{WIDTH},{HEIGHT}", seed=0, panorama_features="cube_faces")
+                   f"{width},{height}", seed=0, panorama_features="cube_faces")
     assert summary["inputs"]["panorama_features"] == "cube_faces"
     assert len(summary["models"]) == 1
     truth = GroundTruth(dict(zip(scene.image_names, scene.cams_from_world)), {})
     report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
-    assert report["num_registered"] == 6
+    assert report["num_registered"] == 5
     assert report["R_err_max_deg"] < 0.1
 
 
