@@ -9,10 +9,14 @@ and a 360-degree image set end to end.
    runs). Per model: images registered over the seeds, R_err median (the median over
    seeds of each run's median) and max (over all seeds), and on how many seeds ours is
    no worse than COLMAP's better mapper on that seed (median and max both).
-2. With --data, `360_flat` (equirectangular photographs, no ground truth) end to end:
-   `colmap-ext reconstruct --camera_model EQUIRECTANGULAR` against COLMAP's pipeline
-   (pycolmap extraction with the same camera, exhaustive matching, incremental mapper);
-   the agreement of the per-image rotations relative to the first image, and the times.
+2. Panoramas end to end: `colmap-ext reconstruct --camera_model EQUIRECTANGULAR` with
+   SIFT on the panoramas and on their cube faces (--panorama_features), against COLMAP's
+   pipeline (pycolmap extraction with the same camera, exhaustive matching, incremental
+   mapper), each a whole process: registered images, points, mean track length and
+   reprojection error, the agreement of the per-image rotations relative to the first
+   image with COLMAP's, and the times. On rendered panoramas with known poses (the
+   synthetic ring scene seen by an EQUIRECTANGULAR camera) also R_err; with --data, on
+   `360_flat` (photographs, no ground truth).
 
 Writes the `cameras` section at the end of BENCHMARKS.md and prints it.
 
@@ -34,6 +38,7 @@ import sys
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np  # noqa: F401  (before pycolmap: README, "Known problem")
 import pycolmap
 
@@ -41,7 +46,9 @@ from accuracy import machine_line, markdown_table, update_section, versions_line
 from mapper_speed import MAPPERS, PreparedSet, largest_model, mapper_command, timed_run
 
 from colmap_ext.evaluate import evaluate
+from colmap_ext.features import PANORAMA_FEATURES
 from colmap_ext.ground_truth import read_colmap
+from colmap_ext.synthetic import render_images, ring_scene, write_ground_truth
 from colmap_ext.synthetic.pycolmap_generator import (wide_fisheye_from_panoramas,
                                                      write_pycolmap_dataset)
 
@@ -52,7 +59,12 @@ WIDE_FISHEYE = "360-degree fisheye"
 MODELS = ("EQUIRECTANGULAR", "OPENCV_FISHEYE", "RADIAL_FISHEYE", "FOV", "EUCM", "SIMPLE_DIVISION",
           WIDE_FISHEYE)
 NUM_IMAGES = 30
-FLAT_360 = ("360_flat", "EQUIRECTANGULAR", "5376,2688")
+FLAT_360 = "360_flat"
+# The rendered panoramas: images of the synthetic ring scene, and their width.
+RENDERED_360 = ("rendered ring", 16, 2048)
+# Per panorama pipeline: ours with each --panorama_features, and COLMAP's (None).
+PANORAMA_RUNS = {**{f"ours, SIFT on {features}": ["--panorama_features", features]
+                    for features in PANORAMA_FEATURES}, "COLMAP incremental": None}
 
 
 def run_generated(model: str, seed: int, work: Path) -> dict[str, dict]:
@@ -124,49 +136,85 @@ def generated_table(results: dict[str, dict[int, dict[str, dict]]]) -> str:
                            "time [s] (median)"], rows)
 
 
-def run_flat_360(data: Path, work: Path, seed: int) -> dict:
-    """Ours end to end against COLMAP's pipeline on the 360-degree photographs."""
-    name, camera_model, camera_params = FLAT_360
-    images = data / name / "images"
-    prepared = PreparedSet(name, work / name / "unused.db", images, Path(),
+def run_panoramas(name: str, images: Path, work: Path, seed: int,
+                  truth: Path | None = None) -> dict:
+    """Every PANORAMA_RUNS pipeline end to end on the panoramas in `images`, whole
+    processes: per run its time, peak memory and model figures, its rotations against
+    COLMAP's, and with `truth` (a COLMAP model) its R_err."""
+    width, height = first_image_size(images)
+    prepared = PreparedSet(name, work / "unused.db", images, Path(),
                            len([p for p in images.iterdir() if p.is_file()]),
-                           camera_model, camera_params)
-    models, runs = {}, {}
-    for mapper in ("ours", "colmap_incremental"):
-        folder = work / name / mapper
+                           "EQUIRECTANGULAR", f"{width},{height}")
+    runs, models = {}, {}
+    for run_name, flags in PANORAMA_RUNS.items():
+        folder = work / name.replace(" ", "_") / run_name.replace(", ", "_").replace(" ", "_")
         folder.mkdir(parents=True, exist_ok=True)
-        command, output = mapper_command(mapper, prepared, folder, seed, end_to_end=True)
-        runs[mapper] = timed_run(command, folder / "log.txt")
-        models[mapper] = largest_model(output) if output.is_dir() else None
-        print(f"  {name} {mapper}: {runs[mapper]}", file=sys.stderr, flush=True)
-    entry = {"num_images": prepared.num_images, "runs": runs,
-             "registered": {m: (r.num_reg_images() if r else 0) for m, r in models.items()}}
-    if all(r is not None and r.num_reg_images() >= 2 for r in models.values()):
-        folder = work / name / "colmap_reference"
-        folder.mkdir(exist_ok=True)
-        models["colmap_incremental"].write(folder)
-        report = evaluate(models["ours"], read_colmap(folder))
-        entry.update(common=report["num_registered"],
-                     rotation_agreement_median_deg=report["R_err_median_deg"],
-                     rotation_agreement_max_deg=report["R_err_max_deg"])
-    return entry
+        command, output = mapper_command("colmap_incremental" if flags is None else "ours",
+                                         prepared, folder, seed, end_to_end=True)
+        runs[run_name] = timed_run(command + (flags or []), folder / "log.txt")
+        models[run_name] = model = largest_model(output) if output.is_dir() else None
+        if model is not None:
+            runs[run_name].update(
+                registered=model.num_reg_images(), points=model.num_points3D(),
+                track_length=model.compute_mean_track_length(),
+                reprojection_error_px=model.compute_mean_reprojection_error())
+        print(f"  {name} {run_name}: {runs[run_name]}", file=sys.stderr, flush=True)
+    colmap = models["COLMAP incremental"]
+    if colmap is not None:
+        reference = work / name.replace(" ", "_") / "colmap_reference"
+        reference.mkdir(exist_ok=True)
+        colmap.write(reference)
+    for run_name, model in models.items():
+        if model is None or model.num_reg_images() < 2:
+            continue
+        if colmap is not None and model is not colmap:
+            report = evaluate(model, read_colmap(reference))
+            runs[run_name]["agreement_deg"] = (report["R_err_median_deg"],
+                                               report["R_err_max_deg"])
+        if truth is not None:
+            report = evaluate(model, read_colmap(truth))
+            runs[run_name]["R_err_deg"] = (report["R_err_median_deg"], report["R_err_max_deg"])
+    return {"name": name, "size": f"{width}x{height}", "num_images": prepared.num_images,
+            "runs": runs}
 
 
-def flat_360_lines(entry: dict) -> list[str]:
-    runs, registered, n = entry["runs"], entry["registered"], entry["num_images"]
-    lines = [f"- {FLAT_360[0]} end to end ({n} photographs, {FLAT_360[1]} {FLAT_360[2]}): "
-             f"ours `reconstruct` {registered['ours']}/{n} registered in "
-             f"{runs['ours']['time_s']:.0f} s ({runs['ours']['peak_mib']:.0f} MiB peak); "
-             f"COLMAP's pipeline (pycolmap extraction, exhaustive matching, incremental mapper) "
-             f"{registered['colmap_incremental']}/{n} in "
-             f"{runs['colmap_incremental']['time_s']:.0f} s "
-             f"({runs['colmap_incremental']['peak_mib']:.0f} MiB peak)."]
-    if "common" in entry:
-        lines.append(f"- Rotations relative to the first image, ours against COLMAP's, over "
-                     f"the {entry['common']} images both registered: median "
-                     f"{entry['rotation_agreement_median_deg']:.3f} deg, max "
-                     f"{entry['rotation_agreement_max_deg']:.3f} deg.")
-    return lines
+def first_image_size(images: Path) -> tuple[int, int]:
+    """(width, height) of the first image of a folder."""
+    first = cv2.imread(str(min(p for p in images.iterdir() if p.is_file())), cv2.IMREAD_GRAYSCALE)
+    return first.shape[1], first.shape[0]
+
+
+def rendered_panoramas(work: Path) -> tuple[Path, Path]:
+    """The synthetic ring scene rendered by an EQUIRECTANGULAR camera: its images and
+    its ground truth (a COLMAP model), made once in `work`."""
+    _, num_images, width = RENDERED_360
+    folder = work / "rendered_ring"
+    if not (folder / "truth").is_dir():
+        camera = pycolmap.Camera(camera_id=1, model="EQUIRECTANGULAR", width=width,
+                                 height=width // 2, params=[width, width // 2])
+        scene = ring_scene(num_images=num_images, camera=camera)
+        render_images(scene, folder / "images")
+        write_ground_truth(scene, folder / "truth")
+    return folder / "images", folder / "truth"
+
+
+def panorama_table(sets: list[dict]) -> str:
+    def pair(values: tuple[float, float] | None) -> str:
+        return "–" if values is None else f"{values[0]:.3f} / {values[1]:.3f}"
+
+    rows = []
+    for entry in sets:
+        for run_name, run in entry["runs"].items():
+            registered = run.get("registered", 0)
+            rows.append([f"{entry['name']} ({entry['num_images']} x {entry['size']})", run_name,
+                         f"{registered}/{entry['num_images']}", str(run.get("points", 0)),
+                         f"{run['track_length']:.2f}" if registered else "–",
+                         f"{run['reprojection_error_px']:.3f}" if registered else "–",
+                         pair(run.get("agreement_deg")), pair(run.get("R_err_deg")),
+                         f"{run['time_s']:.0f}", f"{run['peak_mib']:.0f}"])
+    return markdown_table(["panoramas", "pipeline", "registered", "points", "mean track length",
+                           "mean reproj. error [px]", "rotations vs COLMAP's, median / max [deg]",
+                           "R_err median / max [deg]", "time [s]", "peak [MiB]"], rows)
 
 
 def loss_probe(work: Path, models: list[str], seeds: list[int], loss: str) -> None:
@@ -205,10 +253,14 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     with work_folder(args.work_dir, "colmap-ext-cameras-") as work:
         results = {model: {seed: run_generated(model, seed, work) for seed in seeds}
-                   for model in args.models.split(",")}
-        flat = run_flat_360(Path(args.data), work, seeds[0]) if args.data else None
-        (work / "results.json").write_text(json.dumps({"generated": results, "360_flat": flat},
-                                                      indent=1))
+                   for model in args.models.split(",") if model}
+        rendered, truth = rendered_panoramas(work)
+        panoramas = [run_panoramas(RENDERED_360[0], rendered, work, seeds[0], truth)]
+        if args.data:
+            panoramas.append(run_panoramas(FLAT_360, Path(args.data) / FLAT_360 / "images",
+                                           work, seeds[0]))
+        (work / "results.json").write_text(json.dumps({"generated": results,
+                                                       "panoramas": panoramas}, indent=1))
     command = "python benchmarks/cameras.py " + " ".join(argv or sys.argv[1:])
     lines = [
         "## Camera models: ours against COLMAP's mappers, every central camera family",
@@ -229,9 +281,13 @@ def main(argv: list[str] | None = None) -> int:
         "(`wide_fisheye_from_panoramas`).",
         "",
         generated_table(results),
+        "",
+        f"Panoramas end to end (`reconstruct`, SIFT on the panoramas or on their cube faces, "
+        f"against COLMAP's pipeline; {RENDERED_360[0]}: the synthetic ring scene rendered by "
+        "an EQUIRECTANGULAR camera, R_err against its poses; 360_flat: no ground truth):",
+        "",
+        panorama_table(panoramas),
     ]
-    if flat is not None:
-        lines += [""] + flat_360_lines(flat)
     section = "\n".join(lines)
     update_section(Path(args.markdown), "cameras", section)
     print(section)

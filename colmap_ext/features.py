@@ -6,6 +6,8 @@ each runs pycolmap's own extractor on a scratch database, so the rows are exactl
 COLMAP writes (keypoint format, masking, image reading), and, as in the paper, extracts
 every image with fewer than `min_num_keypoints` keypoints again with half the SIFT
 peak threshold, down to a floor. The features are written here as chunks complete.
+Equirectangular panoramas may instead be extracted on their six cube faces, the
+keypoints mapped back into the panorama (colmap_ext/panorama.py).
 
 All input is checked before any work: a bad camera or an unreadable image is a
 one-line `UserError`, not a COLMAP log line halfway through.
@@ -20,17 +22,20 @@ import statistics
 import tempfile
 import threading
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 from PIL import Image
 
 from colmap_ext.errors import UserError
 from colmap_ext.executors import Executor, ImageSource, LocalExecutor, chunks, items_per_task
+from colmap_ext.panorama import FACE_FORWARD_DOWN, CubeFaces, inside_mask, keypoint_scales
 
 CAMERA_MODES = {"single": pycolmap.CameraMode.SINGLE, "per_folder": pycolmap.CameraMode.PER_FOLDER}
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
@@ -41,8 +46,16 @@ DEFAULT_PEAK_THRESHOLD = pycolmap.SiftExtractionOptions().peak_threshold  # 0.02
 MIN_PEAK_THRESHOLD = 0.00125
 # Images per extraction task, at most (fewer when that leaves some workers idle).
 MAX_IMAGES_PER_TASK = 16
+# Where SIFT runs on EQUIRECTANGULAR images: on the panorama itself (as COLMAP does) or on
+# six cube faces rendered from it, the keypoints mapped back (panorama.py).
+PANORAMA_FEATURES = ("equirectangular", "cube_faces")
+DEFAULT_PANORAMA_FEATURES = "equirectangular"
+# COLMAP's SIFT keeps this many features per image, the largest; so do the cube faces together.
+MAX_NUM_FEATURES = pycolmap.SiftExtractionOptions().max_num_features
 
 Features = tuple[np.ndarray, pycolmap.FeatureDescriptors]
+# extract(names, peak_threshold): the features of those images, by name.
+Extractor = Callable[[list[str], float], dict[str, Features]]
 
 
 @dataclass(frozen=True)
@@ -253,13 +266,19 @@ class FeatureOptions:
     min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS
     # COLMAP's DSP-SIFT descriptors.
     domain_size_pooling: bool = False
+    # EQUIRECTANGULAR cameras: one of PANORAMA_FEATURES (other cameras: not used).
+    panorama_features: str = DEFAULT_PANORAMA_FEATURES
 
     def check(self) -> None:
-        """The camera and the keypoint minimum (the images: check_images)."""
+        """The camera, the keypoint minimum and the panorama features (the images:
+        check_images)."""
         self.params()
         minimum = self.min_num_keypoints
         if isinstance(minimum, bool) or not isinstance(minimum, int) or minimum < 0:
             raise UserError(f"min_num_keypoints must be a non-negative integer, got {minimum!r}")
+        if self.panorama_features not in PANORAMA_FEATURES:
+            raise UserError(f"unknown panorama features {self.panorama_features!r}; choose one "
+                            f"of {', '.join(PANORAMA_FEATURES)}")
 
     def params(self) -> list[float]:
         """The camera parameters as floats, checked against the camera model."""
@@ -272,6 +291,19 @@ class FeatureOptions:
         if mask_path is not None:
             reader.mask_path = Path(mask_path)
         return reader
+
+    def extractor(self, image_path: str | os.PathLike, mask_path: str | os.PathLike | None,
+                  num_threads: int) -> Extractor:
+        """SIFT of the images in `image_path` with the masks in `mask_path`: pycolmap's
+        extractor on the images, or on the cube faces of EQUIRECTANGULAR panoramas."""
+        if self.camera_model == "EQUIRECTANGULAR" and self.panorama_features == "cube_faces":
+            width, height = (int(value) for value in self.params())
+            return partial(extract_cube_faces_to_memory, image_path, mask_path,
+                           CubeFaces.of_panorama(width, height),
+                           domain_size_pooling=self.domain_size_pooling,
+                           num_threads=num_threads)
+        return partial(extract_to_memory, image_path, self.reader_options(mask_path),
+                       domain_size_pooling=self.domain_size_pooling, num_threads=num_threads)
 
 
 def extract_features(database_path: str | os.PathLike, image_path: str | os.PathLike,
@@ -335,15 +367,13 @@ def extract_chunk(source: ImageSource, names: list[str], options: FeatureOptions
     `num_threads` threads. `source`: where this process reads the images (an
     executor's image_sources)."""
     with source.local() as (image_path, mask_path):
-        reader = options.reader_options(mask_path)
-        found = extract_to_memory(image_path, names, reader, DEFAULT_PEAK_THRESHOLD,
-                                  options.domain_size_pooling, num_threads)
+        extract = options.extractor(image_path, mask_path, num_threads)
+        found = extract(names, DEFAULT_PEAK_THRESHOLD)
         initial = {name: len(found[name][0]) for name in names}
         thresholds = dict.fromkeys(names, DEFAULT_PEAK_THRESHOLD)
         low = [name for name in names if initial[name] < options.min_num_keypoints]
         if low:
-            found.update(reextract(image_path, low, reader, options.min_num_keypoints,
-                                   thresholds, options.domain_size_pooling, num_threads))
+            found.update(reextract(extract, low, options.min_num_keypoints, thresholds))
     features = {name: (np.asarray(keypoints, np.float32), np.asarray(descriptors.data, np.uint8))
                 for name, (keypoints, descriptors) in found.items()}
     return ExtractedChunk(features, initial, thresholds)
@@ -375,10 +405,8 @@ def check_new_database(database_path: Path) -> None:
                             "extract into a new database")
 
 
-def reextract(image_path: str | os.PathLike, names: list[str],
-              reader: pycolmap.ImageReaderOptions, min_num_keypoints: int,
-              thresholds: dict[str, float], domain_size_pooling: bool,
-              num_threads: int) -> dict[str, Features]:
+def reextract(extract: Extractor, names: list[str], min_num_keypoints: int,
+              thresholds: dict[str, float]) -> dict[str, Features]:
     """Halve the peak threshold of the images still short of keypoints until each has
     enough or the floor is reached; updates `thresholds`, returns the last features."""
     features: dict[str, Features] = {}
@@ -386,15 +414,14 @@ def reextract(image_path: str | os.PathLike, names: list[str],
     threshold = DEFAULT_PEAK_THRESHOLD
     while pending and threshold > MIN_PEAK_THRESHOLD:
         threshold = max(threshold / 2, MIN_PEAK_THRESHOLD)
-        features.update(extract_to_memory(image_path, pending, reader, threshold,
-                                          domain_size_pooling, num_threads))
+        features.update(extract(pending, threshold))
         thresholds.update(dict.fromkeys(pending, threshold))
         pending = [name for name in pending if len(features[name][0]) < min_num_keypoints]
     return features
 
 
-def extract_to_memory(image_path: str | os.PathLike, names: list[str],
-                      reader: pycolmap.ImageReaderOptions, peak_threshold: float,
+def extract_to_memory(image_path: str | os.PathLike, reader: pycolmap.ImageReaderOptions,
+                      names: list[str], peak_threshold: float, *,
                       domain_size_pooling: bool, num_threads: int) -> dict[str, Features]:
     """Keypoints and descriptors of `names` from pycolmap's extractor on a scratch
     database (one camera per image there: only the features are kept)."""
@@ -418,3 +445,68 @@ def extract_to_memory(image_path: str | os.PathLike, names: list[str],
                                    else ""))
             return {name: (db.read_keypoints(ids[name]), db.read_descriptors(ids[name]))
                     for name in names}
+
+
+def extract_cube_faces_to_memory(image_path: str | os.PathLike,
+                                 mask_path: str | os.PathLike | None, faces: CubeFaces,
+                                 names: list[str], peak_threshold: float, *,
+                                 domain_size_pooling: bool,
+                                 num_threads: int) -> dict[str, Features]:
+    """Keypoints (in panorama pixels) and descriptors of the panoramas `names`, from
+    pycolmap's extractor on their cube faces: each face's own keypoints (panorama.py), not
+    under the panorama's mask, and of them the MAX_NUM_FEATURES largest detections, as
+    COLMAP keeps on one image."""
+    face_names = {name: [f"{index}_{face}.png" for face in range(len(FACE_FORWARD_DOWN))]
+                  for index, name in enumerate(names)}
+    with tempfile.TemporaryDirectory(prefix="colmap-ext-cube-faces-") as scratch:
+        for name in names:
+            panorama = read_grey(Path(image_path) / name)
+            for face_name, image in zip(face_names[name], faces.render(panorama)):
+                if not cv2.imwrite(str(Path(scratch) / face_name), image,
+                                   [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+                    raise UserError(f"cannot write a cube face of {name} into {scratch}")
+        reader = pycolmap.ImageReaderOptions(
+            camera_model="SIMPLE_PINHOLE",
+            camera_params=",".join(repr(p) for p in (faces.focal, faces.size / 2, faces.size / 2)))
+        # One extractor per face: pycolmap 4.2.1's CPU SIFT reuses its filter across images
+        # of one size, and a face then loses keypoints after a face with few (a blob
+        # found alone, missed after a near-empty face).
+        found: dict[str, Features] = {}
+        for face_name in (face_name for of_one in face_names.values() for face_name in of_one):
+            found.update(extract_to_memory(scratch, reader, [face_name], peak_threshold,
+                                           domain_size_pooling=domain_size_pooling,
+                                           num_threads=num_threads))
+    features: dict[str, Features] = {}
+    for name in names:
+        keypoints, descriptors = [], []
+        for face, face_name in enumerate(face_names[name]):
+            face_keypoints, face_descriptors = found[face_name]
+            mapped, owned = faces.to_panorama(face, face_keypoints)
+            keypoints.append(mapped[owned])
+            descriptors.append(np.asarray(face_descriptors.data, np.uint8)[owned])
+        all_keypoints, all_descriptors = np.concatenate(keypoints), np.concatenate(descriptors)
+        if mask_path is not None:
+            kept = inside_mask(read_grey(Path(mask_path) / f"{name}.png"), all_keypoints[:, :2])
+            all_keypoints, all_descriptors = all_keypoints[kept], all_descriptors[kept]
+        largest = largest_detections(all_keypoints, MAX_NUM_FEATURES)
+        features[name] = (all_keypoints[largest], pycolmap.FeatureDescriptors(
+            pycolmap.FeatureExtractorType.SIFT, all_descriptors[largest]))
+    return features
+
+
+def largest_detections(keypoints: np.ndarray, max_num_features: int) -> np.ndarray:
+    """Which keypoints (n, 6) belong to the `max_num_features` largest detections, as COLMAP
+    counts them: the keypoints of one place (its orientations) are one detection."""
+    _, detection = np.unique(keypoints[:, :2], axis=0, return_inverse=True)
+    detection = detection.reshape(-1)
+    scales = np.zeros(detection.max(initial=-1) + 1)
+    np.maximum.at(scales, detection, keypoint_scales(keypoints))
+    return np.isin(detection, np.argsort(-scales, kind="stable")[:max_num_features])
+
+
+def read_grey(path: Path) -> np.ndarray:
+    """An 8-bit grey image as COLMAP reads it (EXIF orientation not applied)."""
+    image = cv2.imread(str(path), cv2.IMREAD_GRAYSCALE | cv2.IMREAD_IGNORE_ORIENTATION)
+    if image is None:
+        raise UserError(f"cannot read image {path}")
+    return image

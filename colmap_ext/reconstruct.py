@@ -22,6 +22,8 @@ from colmap_ext.errors import UserError
 from colmap_ext.features import (
     CAMERA_MODES,
     DEFAULT_MIN_NUM_KEYPOINTS,
+    DEFAULT_PANORAMA_FEATURES,
+    PANORAMA_FEATURES,
     FeatureOptions,
     check_camera,
     check_images,
@@ -71,6 +73,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="COLMAP's DSP-SIFT descriptors: on textured photographs lower "
                              "rotation errors, at twice the extraction time; on low-texture "
                              "turntables worse (BENCHMARKS.md)")
+    parser.add_argument("--panorama_features", choices=PANORAMA_FEATURES, default=None,
+                        help="EQUIRECTANGULAR cameras: SIFT on the panorama itself (as "
+                             "COLMAP does) or on six cube faces rendered from it, the "
+                             f"keypoints mapped back (default: {DEFAULT_PANORAMA_FEATURES}; "
+                             "BENCHMARKS.md)")
     parser.add_argument("--matcher", choices=MATCHERS, default="auto",
                         help="auto: exhaustive up to 100 images, sequential (with loop "
                              "closure) beyond")
@@ -97,7 +104,7 @@ def main(image_path: str, workspace_path: str, camera_model: str | None = None,
          min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS, matcher: str = "auto",
          exact_matching: bool = False, seed: int | None = None, overwrite: bool = False,
          output_type: str = "BIN", ray_address: str | None = None,
-         domain_size_pooling: bool = False) -> dict:
+         domain_size_pooling: bool = False, panorama_features: str | None = None) -> dict:
     """Run masks (optional), features, matching and the mapper; returns the summary.
     With `ray_address`, features and matching run as tasks on that Ray cluster
     (distributed.py), which is reached before anything is written."""
@@ -112,8 +119,12 @@ def main(image_path: str, workspace_path: str, camera_model: str | None = None,
                                  output_type)
     if rig_configs is not None:
         rigs.check_rig_images(rig_configs, names)
+    if panorama_features is not None and camera_model != "EQUIRECTANGULAR":
+        raise UserError(f"--panorama_features is for EQUIRECTANGULAR cameras, not {camera_model}")
     features = FeatureOptions(camera_model, params, camera_mode, mask_path, min_num_keypoints,
-                              domain_size_pooling)
+                              domain_size_pooling,
+                              panorama_features or DEFAULT_PANORAMA_FEATURES)
+    features.check()
     matching = MatchingOptions(matcher=matcher, exact=exact_matching,
                                seed=secrets.randbits(31) if seed is None else seed)
     with replacing(workspace_path, WORKSPACE, overwrite) as new_workspace, \
@@ -142,7 +153,9 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
         "camera_params": features.camera_params, "camera_mode": features.camera_mode,
         "mask_path": features.mask_path, "segment": segment,
         "min_num_keypoints": features.min_num_keypoints,
-        "domain_size_pooling": features.domain_size_pooling, "matcher": matching.matcher,
+        "domain_size_pooling": features.domain_size_pooling,
+        "panorama_features": features.panorama_features
+        if features.camera_model == "EQUIRECTANGULAR" else None, "matcher": matching.matcher,
         "exact_matching": matching.exact, "seed": matching.seed, "num_images": len(names)}}
 
     if segment is not None:

@@ -1,20 +1,24 @@
 """Images and ground truth of a synthetic scene: ray-cast textured quads through the distorted camera.
 
 Every pixel centre of the distorted image is unprojected with the camera model
-(`Camera.cam_from_img`), so the images carry exactly the camera's distortion. Rendering
+(`Camera.cam_from_img`), so the images carry exactly the camera's distortion. A camera
+without an image plane (EQUIRECTANGULAR) is cast face by face of a cube around it
+(`Camera.cam_ray_from_img`, each ray through the face it points at). Rendering
 is supersampled and box-filtered for antialiasing. Textures are procedural and
 multi-scale (noise octaves plus overlapping shapes: blobs and corners for SIFT).
 """
 
 from __future__ import annotations
 
+from dataclasses import fields
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pycolmap
 
-from colmap_ext.synthetic.scene import Quad, Scene, cast_rays, image_rays
+from colmap_ext.panorama import FACE_FORWARD_DOWN, face_from_cam, owning_faces
+from colmap_ext.synthetic.scene import Quad, RayHits, Scene, cast_rays, image_rays
 
 BACKGROUND = 0.5
 LIGHT = np.array([0.3, 0.5, 0.8]) / np.linalg.norm([0.3, 0.5, 0.8])
@@ -114,8 +118,22 @@ class Renderer:
         self.scene = scene
         self.seed = seed
         self.supersample = supersample
-        shape = (scene.camera.height * supersample, scene.camera.width * supersample, 2)
-        self.rays = image_rays(scene.camera, pixel_grid(scene.camera, supersample)).reshape(shape)
+        self.shape = (scene.camera.height * supersample, scene.camera.width * supersample)
+        grid = pixel_grid(scene.camera, supersample)
+        self.rays = image_rays(scene.camera, grid).reshape(*self.shape, 2) \
+            if scene.camera.focal_length_idxs() else None
+        # Without an image plane: per cube face, face_from_cam, its rays' flat indices and
+        # their (x, y) on the face's plane, laid out N x 1 x 2.
+        self.face_rays: list[tuple[pycolmap.Rigid3d, np.ndarray, np.ndarray]] = []
+        if self.rays is None:
+            rays = scene.camera.cam_ray_from_img(grid)
+            owners = owning_faces(rays)
+            for face in range(len(FACE_FORWARD_DOWN)):
+                selected = np.flatnonzero(owners == face)
+                on_face = rays[selected] @ face_from_cam(face).T
+                self.face_rays.append((
+                    pycolmap.Rigid3d(pycolmap.Rotation3d(face_from_cam(face)), np.zeros(3)),
+                    selected, (on_face[:, :2] / on_face[:, 2:])[:, None, :]))
         self.textures: dict[int, np.ndarray] = {}
 
     def texture(self, index: int) -> np.ndarray:
@@ -125,9 +143,23 @@ class Renderer:
             self.textures[index] = make_texture(self.scene.quads[index], rng)
         return self.textures[index]
 
+    def hits(self, image_index: int) -> RayHits:
+        """The nearest quad per supersample of view `image_index` (depth along the ray's
+        cube face's axis, for a camera without an image plane)."""
+        cam_from_world = self.scene.cams_from_world[image_index]
+        if self.rays is not None:
+            return cast_rays(self.scene, cam_from_world, self.rays)
+        hits = RayHits(np.full(self.shape, np.inf, np.float32), np.full(self.shape, -1, np.int32),
+                       np.zeros(self.shape, np.float32), np.zeros(self.shape, np.float32))
+        for face_from_camera, selected, rays in self.face_rays:
+            found = cast_rays(self.scene, face_from_camera * cam_from_world, rays)
+            for field in fields(RayHits):
+                getattr(hits, field.name).ravel()[selected] = getattr(found, field.name).ravel()
+        return hits
+
     def radiance(self, image_index: int) -> np.ndarray:
         """Supersampled image in [0, 1]: texture of the nearest quad per ray, times its lighting."""
-        hits = cast_rays(self.scene, self.scene.cams_from_world[image_index], self.rays)
+        hits = self.hits(image_index)
         labels, u, v = hits.quad_index.ravel(), hits.u.ravel(), hits.v.ravel()
         values = np.full(labels.shape, BACKGROUND, np.float32)
         order = np.argsort(labels, kind="stable")
