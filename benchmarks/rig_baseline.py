@@ -9,7 +9,7 @@ Then, each in its own process under /usr/bin/time -v:
 - COLMAP: pycolmap extraction (one camera per folder, OPENCV_FISHEYE), apply_rig_config (each
   camera's intrinsics from the configuration), exhaustive matching, incremental mapping
   with the intrinsics and the rig fixed (ba_refine_sensor_from_rig False);
-- ours: `colmap-ext reconstruct --rig_config` (the mapper does not use the rig yet).
+- ours: `colmap-ext reconstruct --rig_config` (frames registered whole, the rig held fixed).
 Each model's rig consistency is measured against the configuration.
 
     COLMAP_EXT_DATA=/path/to/data python benchmarks/rig_baseline.py [--work_dir DIR] [--seed 0]

@@ -15,8 +15,9 @@ from colmap_ext.mapper.pipeline import reconstruct
 
 @dataclass
 class ClusterModel:
-    """One model of one cluster, as arrays (what a task returns): poses, and points with
-    their tracks as flat observation lists."""
+    """One model of one cluster, as arrays (what a task returns: pycolmap 4.2.1's
+    Reconstruction cannot be pickled), read-only: poses, and points with their tracks as
+    flat observation lists; joining.join makes the group's Reconstruction of them."""
 
     image_ids: np.ndarray  # (k,)
     cams_from_world: np.ndarray  # (k, 3, 4)
