@@ -19,8 +19,9 @@ def adjustment_options(ba: BundleAdjustmentOptions, max_iterations: int, num_thr
                        refine_intrinsics: bool = False, loss: str | None = None,
                        loss_scale_px: float | None = None) -> pycolmap.BundleAdjustmentOptions:
     """pycolmap's options for one adjustment with ours: the loss and its scale (default:
-    the robust one, BundleAdjustmentOptions.loss and loss_scale_px), Ceres's limits and
-    threads, and the intrinsics refined only where `refine_intrinsics` and the options
+    the robust one, BundleAdjustmentOptions.loss and loss_scale_px; a model's last
+    adjustment names its own, which in least squares runs to convergence), Ceres's limits
+    and threads, and the intrinsics refined only where `refine_intrinsics` and the options
     ask for it."""
     refine = refine_intrinsics and ba.refines_intrinsics
     ba_options = pycolmap.BundleAdjustmentOptions(
@@ -32,7 +33,8 @@ def adjustment_options(ba: BundleAdjustmentOptions, max_iterations: int, num_thr
                                                   (loss or ba.loss).upper())
     ba_options.ceres.loss_function_scale = loss_scale_px or ba.loss_scale_px
     ba_options.ceres.solver_options.max_num_iterations = max_iterations
-    ba_options.ceres.solver_options.function_tolerance = ba.function_tolerance
+    ba_options.ceres.solver_options.function_tolerance = \
+        ba.least_squares_function_tolerance if loss == "trivial" else ba.function_tolerance
     ba_options.ceres.solver_options.num_threads = num_threads
     ba_options.ceres.min_num_residuals_for_cpu_multi_threading = \
         ba.min_num_residuals_for_multi_threading

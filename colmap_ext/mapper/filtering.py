@@ -11,6 +11,10 @@ import pycolmap
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import FilteringOptions
 
+# An observation whose reprojection error exceeds this many times the model's median
+# counts as an outlier in `outlier_share`.
+OUTLIER_ERROR_RATIO = 3.0
+
 
 def filter_points(model: Model, image_ids: list[int], filtering: FilteringOptions,
                   final: bool = False, max_error_ratio: float = 0.0) -> tuple[int, int]:
@@ -61,9 +65,25 @@ def error_limit(max_error_px: float, median_error_px: float, noise_max_error_rat
 
 def median_reprojection_error(model: Model, image_ids: list[int]) -> float:
     """The median reprojection error (px) of the observations in `image_ids`; inf if none."""
+    errors = _reprojection_errors(model, image_ids)
+    return float(np.median(errors)) if len(errors) else np.inf
+
+
+def outlier_share(model: Model, image_ids: list[int]) -> float:
+    """The share of the observations in `image_ids` whose reprojection error exceeds
+    OUTLIER_ERROR_RATIO x their median: 0.2 % where the keypoint noise is Gaussian (the
+    errors then follow a Rayleigh distribution), more where wrong or poorly localised
+    matches remain; 1 if there are no observations."""
+    errors = _reprojection_errors(model, image_ids)
+    if not len(errors):
+        return 1.0
+    return float(np.mean(errors > OUTLIER_ERROR_RATIO * np.median(errors)))
+
+
+def _reprojection_errors(model: Model, image_ids: list[int]) -> np.ndarray:
     errors = [model.reprojection_errors(image_id, kps, model.xyz[point_ids])
               for image_id in image_ids for kps, point_ids in [model.observations(image_id)]]
-    return float(np.median(np.concatenate(errors))) if any(len(e) for e in errors) else np.inf
+    return np.concatenate(errors) if errors else np.zeros(0)
 
 
 def _supported(model: Model, point_id: int, track_length: int, wide_enough: bool,

@@ -205,12 +205,18 @@ class BundleAdjustmentOptions:
     noise_loss_scale_ratio: float = 1.7
     # The loss of a finished model's last adjustment, after its last filter. Least
     # squares ("trivial") gives the maximum-likelihood poses on the observations kept,
-    # which the robust loss down-weights, where the filter leaves Gaussian noise alone
-    # (FilteringOptions.final_max_error_ratio 3: COLMAP's answer on its generator's
-    # sets); on the sparse turntables it loses images and accuracy (BENCHMARKS.md).
-    final_loss: str = "cauchy"
+    # which the robust loss down-weights, where the keypoint noise is Gaussian ...
+    final_loss: str = "trivial"
+    # ... which the model's reprojection errors must show: at most this share of them
+    # beyond 3x their median (filtering.outlier_share; Gaussian noise puts 0.2 % there).
+    # Elsewhere (wrong or poorly localised matches) the last adjustment keeps the robust
+    # loss, which least squares would let them pull (BENCHMARKS.md, "Why the defaults").
+    final_loss_max_outlier_share: float = 0.01
     # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
     function_tolerance: float = 1e-5
+    # ... and in a model's last adjustment where it is least squares (final_loss): the
+    # model's answer, run to convergence as COLMAP's global adjustments are.
+    least_squares_function_tolerance: float = 0.0
     # Smaller problems (residuals) are solved on one thread, larger on MapperOptions.threads().
     min_num_residuals_for_multi_threading: int = 50000
     # Refine the intrinsics in global adjustments (the method holds them constant).
@@ -238,8 +244,12 @@ class BundleAdjustmentOptions:
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.final_loss in BA_LOSSES, self, "final_loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
+        _require(0 <= self.final_loss_max_outlier_share <= 1, self,
+                 "final_loss_max_outlier_share", "in [0, 1]")
         _require(self.noise_loss_scale_ratio >= 0, self, "noise_loss_scale_ratio", ">= 0")
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
+        _require(self.least_squares_function_tolerance >= 0, self,
+                 "least_squares_function_tolerance", ">= 0")
         _require(self.min_num_residuals_for_multi_threading >= 0, self,
                  "min_num_residuals_for_multi_threading", ">= 0")
         for name in ("constant_camera_ids", "constant_rig_ids"):

@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from colmap_ext.mapper.bundle_adjustment import bundle_adjust
-from colmap_ext.mapper.filtering import error_limit, filter_points, median_reprojection_error
+from colmap_ext.mapper.filtering import (error_limit, filter_points, median_reprojection_error,
+                                          outlier_share)
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (BundleAdjustmentOptions, FilteringOptions,
                                        GuidedMatchingOptions, MapperOptions,
@@ -91,8 +92,9 @@ class ModelAdjuster:
         """Adjust every registered image, then filter. `final`, the model's end: `rounds`
         rounds, their filter also relative to the model's median error
         (final_max_error_ratio), and one more adjustment on what the last filter kept,
-        with the final loss (BundleAdjustmentOptions.final_loss), if that filter dropped
-        observations or the final loss is not the robust one."""
+        with the final loss (BundleAdjustmentOptions.final_loss) where the reprojection
+        errors look Gaussian and the robust one elsewhere, if that filter dropped
+        observations or the loss changes."""
         model, ba = self.model, self.ba
         registered = model.registered
         ratio = self.filtering.final_max_error_ratio if final else 0.0
@@ -104,9 +106,12 @@ class ModelAdjuster:
             with self.timer("filtering"):
                 removed, _ = filter_points(model, registered, self.filtering, final=final,
                                            max_error_ratio=ratio)
-        if final and (ratio > 0 and removed or ba.final_loss != ba.loss):
-            self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True,
-                                loss=ba.final_loss)
+        if final:
+            gaussian = outlier_share(model, registered) <= ba.final_loss_max_outlier_share
+            loss = ba.final_loss if gaussian else ba.loss
+            if ratio > 0 and removed or loss != ba.loss:
+                self._bundle_adjust(registered, ba.global_max_iterations,
+                                    refine_intrinsics=True, loss=loss)
 
     def _bundle_adjust(self, image_ids: list[int], max_iterations: int,
                        refine_intrinsics: bool = False, loss: str | None = None) -> None:
