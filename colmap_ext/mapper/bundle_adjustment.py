@@ -65,7 +65,7 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
     images brings its other observations in, their poses constant; a longer track is
     already well determined and enters through the observations of `image_ids` alone,
     held constant where they are just one. Without two constant frames, two cameras fix
-    the gauge. With `refine_intrinsics`, the intrinsics the options name are refined
+    the gauge, or one frame where a rig's baseline fixes the scale. With `refine_intrinsics`, the intrinsics the options name are refined
     too, but for the cameras in BundleAdjustmentOptions.constant_camera_ids; `loss` and
     `loss_scale_px` replace the options' robust loss and its scale. Returns the number of
     Ceres iterations."""
@@ -93,7 +93,13 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
         variable_point_ids, outside = _add_local_points(model, requested, config,
                                                         ba.local_max_track_length)
     constant = {model.frame_id(i) for i in (outside - requested) | fixed}
-    if len(constant) < 2:
+    if _rig_fixes_scale(model, requested, ba):
+        # Scale is observed: one constant frame fixes the gauge. Two cameras would fix
+        # one more degree of freedom, the scale, to whatever the model had.
+        if not constant:
+            first = next(i for i in model.registration_order if i in requested)
+            config.set_constant_rig_from_world_pose(model.frame_id(first))
+    elif len(constant) < 2:
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
 
     ba_options = adjustment_options(ba, max_iterations, num_threads, refine_intrinsics,
@@ -112,6 +118,20 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
     if refine_intrinsics:
         model.refresh_cameras()
     return summary.ceres_summary.num_successful_steps + summary.ceres_summary.num_unsuccessful_steps
+
+
+def _rig_fixes_scale(model: Model, image_ids: set[int], ba: BundleAdjustmentOptions) -> bool:
+    """Whether a frame among `image_ids` holds two cameras at different centres of a rig
+    the adjustment holds constant: the rig's baseline then gives the model its scale."""
+    for frame_id in {model.frame_id(i) for i in image_ids}:
+        images = model.frame_images(next(i for i in image_ids if model.frame_id(i) == frame_id))
+        rig_id = model.reconstruction.frames[frame_id].rig_id
+        if len(images) < 2 or ba.refine_sensor_from_rig and rig_id not in ba.constant_rig_ids:
+            continue
+        centres = np.array([model.cam_from_rig(i).inverse().translation for i in images])
+        if np.ptp(centres, axis=0).max() > 0:
+            return True
+    return False
 
 
 def _variables(reconstruction: pycolmap.Reconstruction,
