@@ -27,7 +27,9 @@ from colmap_ext.ground_truth import GroundTruth
 from colmap_ext.hierarchical_mapper import (MAPPER_DEFAULTS, ClusterModel, HierarchicalOptions,
                                             hierarchical_mapping, partition, similarity)
 from colmap_ext.mapper.cli import options_from_flags
+from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
+from colmap_ext.synthetic.pycolmap_generator import write_pycolmap_dataset
 from colmap_ext.synthetic.scene import Quad, Scene, box_quads, look_at
 
 GRID_SIDE = 15
@@ -293,3 +295,21 @@ def test_killed_command_leaves_no_worker_running(survey, tmp_path):
         command.kill()
         for pid in filter(alive, workers):  # orphans of a failed run: not left computing
             os.kill(pid, signal.SIGKILL)
+
+
+def test_clusters_of_a_rigs_frames_join_with_the_rig_kept(tmp_path):
+    """COLMAP's generator, 2 rigs of 3 cameras (30 images, 0.5 px noise) in clusters of at
+    most 12 + 4 images: one model of every image whose frames keep the rig exactly (the
+    joined model's adjustment holds it, as the clusters' did)."""
+    truth = write_pycolmap_dataset(tmp_path / "database.db", None, 0, num_images=30,
+                                   noise_px=0.5, num_points=300, num_cameras=3, num_rigs=2)
+    db = read_database(tmp_path / "database.db")
+    mapper_options = options_from_flags({"random_seed": 0}, base=MAPPER_DEFAULTS)
+    [model], _ = hierarchical_mapping(db, mapper_options, HierarchicalOptions(
+        leaf_max_num_images=12, image_overlap=4), progress=False)
+    assert model.num_reg_images() == truth.num_images() and model.num_rigs() == 2
+    kept = rig_consistency(model, model_rig_frames(truth))
+    assert kept["num_frames"] == truth.num_frames() and kept["rotation_max_deg"] < 1e-6
+    report = evaluate(model, GroundTruth({image.name: image.cam_from_world()
+                                          for image in truth.images.values()}, {}))
+    assert report["R_err_max_deg"] < 0.1

@@ -18,6 +18,7 @@ from colmap_ext.errors import UserError
 from colmap_ext.geometry import rotation_angles_deg
 from colmap_ext.ground_truth import GroundTruth
 from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
+from colmap_ext.synthetic.pycolmap_generator import write_pycolmap_dataset
 from colmap_ext.synthetic.render import render_images
 from colmap_ext.synthetic.scene import Scene, ring_scene
 
@@ -286,19 +287,10 @@ def test_reconstruct_needs_intrinsics_from_the_flags_or_the_rig_config(
 
 def generated_rigs(database_path: Path, num_rigs: int, num_cameras: int, num_frames: int,
                    num_points: int, seed: int, noise_px: float = 0.0) -> pycolmap.Reconstruction:
-    """A database of COLMAP's generator: `num_rigs` rigs of `num_cameras` cameras, each with
-    `num_frames` frames, keypoint noise `noise_px`; returns the truth."""
-    options = pycolmap.SyntheticDatasetOptions()
-    options.num_rigs, options.num_cameras_per_rig = num_rigs, num_cameras
-    options.num_frames_per_rig, options.num_points3D = num_frames, num_points
-    pycolmap.set_random_seed(seed)
-    with pycolmap.Database.open(str(database_path)) as db:
-        truth = pycolmap.synthesize_dataset(options, db)
-        if noise_px:
-            noise = pycolmap.SyntheticNoiseOptions()
-            noise.point2D_stddev = noise_px
-            pycolmap.synthesize_noise(noise, truth, db)
-    return truth
+    """COLMAP's generator with its own camera: `num_rigs` rigs of `num_cameras` cameras,
+    `num_frames` frames each; returns the truth."""
+    return write_pycolmap_dataset(database_path, None, seed, num_rigs * num_cameras * num_frames,
+                                  noise_px, num_points, num_cameras, num_rigs=num_rigs)
 
 
 def test_compare_measures_each_mappers_model_against_the_databases_rig(tmp_path: Path) -> None:

@@ -45,13 +45,14 @@ def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, ba: BundleAdj
                           num_threads: int) -> None:
     """Global adjustment, in place, of every registered pose and every point of a
     reconstruction that no Model holds (a joined one): the options' loss and Ceres limits
-    (global_max_iterations), intrinsics constant, the gauge fixed by two cameras."""
+    (global_max_iterations), intrinsics constant, rigs as `hold_rigs_and_fix_gauge` says."""
     config = pycolmap.BundleAdjustmentConfig()
-    for image_id in reconstruction.reg_image_ids():
+    image_ids = sorted(reconstruction.reg_image_ids())
+    for image_id in image_ids:
         config.add_image(image_id)
     for camera_id in reconstruction.cameras:
         config.set_constant_cam_intrinsics(camera_id)
-    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    hold_rigs_and_fix_gauge(config, reconstruction, image_ids, set(), ba)
     ba_options = adjustment_options(ba, ba.global_max_iterations, num_threads)
     pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
 
@@ -64,8 +65,8 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
     adjustments do: a point seen by at most BundleAdjustmentOptions.local_max_track_length
     images brings its other observations in, their poses constant; a longer track is
     already well determined and enters through the observations of `image_ids` alone,
-    held constant where they are just one. Without two constant frames, two cameras fix
-    the gauge, or one frame where a rig's baseline fixes the scale. With `refine_intrinsics`, the intrinsics the options name are refined
+    held constant where they are just one; the rigs and the gauge as
+    `hold_rigs_and_fix_gauge` says. With `refine_intrinsics`, the intrinsics the options name are refined
     too, but for the cameras in BundleAdjustmentOptions.constant_camera_ids; `loss` and
     `loss_scale_px` replace the options' robust loss and its scale. Returns the number of
     Ceres iterations."""
@@ -81,10 +82,6 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
     for camera_id in reconstruction.cameras:
         if not refine_intrinsics or camera_id in ba.constant_camera_ids:
             config.set_constant_cam_intrinsics(camera_id)
-    for rig_id, rig in reconstruction.rigs.items():
-        if not ba.refine_sensor_from_rig or rig_id in ba.constant_rig_ids:
-            for sensor_id in rig.non_ref_sensors:
-                config.set_constant_sensor_from_rig_pose(sensor_id)
 
     if len(requested) == model.num_registered:
         # A global adjustment: the images hold every observation of every point.
@@ -93,14 +90,8 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
         variable_point_ids, outside = _add_local_points(model, requested, config,
                                                         ba.local_max_track_length)
     constant = {model.frame_id(i) for i in (outside - requested) | fixed}
-    if _rig_fixes_scale(model, requested, ba):
-        # Scale is observed: one constant frame fixes the gauge. Two cameras would fix
-        # one more degree of freedom, the scale, to whatever the model had.
-        if not constant:
-            first = next(i for i in model.registration_order if i in requested)
-            config.set_constant_rig_from_world_pose(model.frame_id(first))
-    elif len(constant) < 2:
-        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    hold_rigs_and_fix_gauge(config, reconstruction,
+                            [i for i in model.registration_order if i in requested], constant, ba)
 
     ba_options = adjustment_options(ba, max_iterations, num_threads, refine_intrinsics,
                                     loss=loss, loss_scale_px=loss_scale_px)
@@ -120,18 +111,36 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
     return summary.ceres_summary.num_successful_steps + summary.ceres_summary.num_unsuccessful_steps
 
 
-def _rig_fixes_scale(model: Model, image_ids: set[int], ba: BundleAdjustmentOptions) -> bool:
-    """Whether a frame among `image_ids` holds two cameras at different centres of a rig
-    the adjustment holds constant: the rig's baseline then gives the model its scale."""
-    for frame_id in {model.frame_id(i) for i in image_ids}:
-        images = model.frame_images(next(i for i in image_ids if model.frame_id(i) == frame_id))
-        rig_id = model.reconstruction.frames[frame_id].rig_id
-        if len(images) < 2 or ba.refine_sensor_from_rig and rig_id not in ba.constant_rig_ids:
-            continue
-        centres = np.array([model.cam_from_rig(i).inverse().translation for i in images])
-        if np.ptp(centres, axis=0).max() > 0:
-            return True
-    return False
+def hold_rigs_and_fix_gauge(config: pycolmap.BundleAdjustmentConfig,
+                            reconstruction: pycolmap.Reconstruction, image_ids: list[int],
+                            constant_frame_ids: set[int], ba: BundleAdjustmentOptions) -> None:
+    """Hold the rigs' sensor_from_rig constant (unless refine_sensor_from_rig, but for
+    constant_rig_ids), and fix the gauge of an adjustment of `image_ids` whose frames
+    `constant_frame_ids` are held: where a frame holds two cameras of a constant rig at
+    different centres, the rig's baseline gives the scale and one constant frame (the
+    first image's) is enough; two cameras would fix the scale to whatever the model had.
+    Otherwise two constant frames, or two cameras."""
+    constant_rigs = {rig_id for rig_id in reconstruction.rigs
+                     if not ba.refine_sensor_from_rig or rig_id in ba.constant_rig_ids}
+    for rig_id in constant_rigs:
+        for sensor_id in reconstruction.rigs[rig_id].non_ref_sensors:
+            config.set_constant_sensor_from_rig_pose(sensor_id)
+    frames = [reconstruction.frames[reconstruction.images[i].frame_id] for i in image_ids]
+    if any(frame.rig_id in constant_rigs and _has_baseline(reconstruction, frame)
+           for frame in frames):
+        if not constant_frame_ids and frames:
+            config.set_constant_rig_from_world_pose(frames[0].frame_id)
+    elif len(constant_frame_ids) < 2:
+        config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+
+
+def _has_baseline(reconstruction: pycolmap.Reconstruction, frame: pycolmap.Frame) -> bool:
+    """Whether the frame holds two images of cameras at different centres in its rig."""
+    rig = reconstruction.rigs[frame.rig_id]
+    centres = [np.zeros(3) if rig.is_ref_sensor(data_id.sensor_id)
+               else rig.sensor_from_rig(data_id.sensor_id).inverse().translation
+               for data_id in frame.image_ids]
+    return len(centres) >= 2 and np.ptp(centres, axis=0).max() > 0
 
 
 def _variables(reconstruction: pycolmap.Reconstruction,

@@ -26,28 +26,32 @@ CAMERA_PARAMS = {
 }
 
 
-def write_pycolmap_dataset(database_path: str | Path, camera_model: str, seed: int,
+def write_pycolmap_dataset(database_path: str | Path, camera_model: str | None, seed: int,
                            num_images: int = 30, noise_px: float = 0.5,
                            num_points: int = 100, num_cameras: int = 1,
-                           params: list[float] | None = None) -> pycolmap.Reconstruction:
-    """Write a new database of `num_images` images (frames of one rig of `num_cameras`
-    cameras of `camera_model`) with keypoint noise, and return its ground truth."""
+                           params: list[float] | None = None,
+                           num_rigs: int = 1) -> pycolmap.Reconstruction:
+    """Write a new database of `num_images` images (frames of `num_rigs` rigs of
+    `num_cameras` cameras of `camera_model`; None: the generator's own camera) with
+    keypoint noise, and return its ground truth."""
     pycolmap.set_random_seed(seed)
     options = pycolmap.SyntheticDatasetOptions()
-    options.num_rigs = 1
+    options.num_rigs = num_rigs
     options.num_cameras_per_rig = num_cameras
-    options.num_frames_per_rig = num_images // num_cameras
+    options.num_frames_per_rig = num_images // (num_rigs * num_cameras)
     options.num_points3D = num_points
-    options.camera_model_id = getattr(pycolmap.CameraModelId, camera_model)
-    options.camera_params = params or CAMERA_PARAMS[camera_model]
+    if camera_model is not None:
+        options.camera_model_id = getattr(pycolmap.CameraModelId, camera_model)
+        options.camera_params = params or CAMERA_PARAMS[camera_model]
     if camera_model == "EQUIRECTANGULAR":
         options.camera_width, options.camera_height = map(int, options.camera_params)
     database = pycolmap.Database.open(str(database_path))
     try:
         truth = pycolmap.synthesize_dataset(options, database)
-        noise = pycolmap.SyntheticNoiseOptions()
-        noise.point2D_stddev = noise_px
-        pycolmap.synthesize_noise(noise, truth, database)
+        if noise_px:
+            noise = pycolmap.SyntheticNoiseOptions()
+            noise.point2D_stddev = noise_px
+            pycolmap.synthesize_noise(noise, truth, database)
     finally:
         database.close()
     return truth
