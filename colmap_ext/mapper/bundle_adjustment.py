@@ -167,15 +167,18 @@ def _add_local_points(model: Model, image_ids: set[int], config: pycolmap.Bundle
     """Add the points of a local adjustment's images to `config` by COLMAP's rule (see
     bundle_adjust). Returns the variable points and the images their tracks reach."""
     point_ids = np.unique(np.concatenate(
-        [model.observations(image_id)[1] for image_id in image_ids])).tolist()
-    variable_point_ids, reached = [], set()
-    for point_id in point_ids:
-        track = model.track(point_id)
-        if len(track) <= max_track_length:
-            config.add_variable_point(point_id)
-            reached.update(track)
-        elif sum(image_id in image_ids for image_id in track) < 2:
-            config.add_constant_point(point_id)
-            continue
-        variable_point_ids.append(point_id)
-    return variable_point_ids, reached
+        [model.observations(image_id)[1] for image_id in image_ids]))
+    # Every track at once (Model.track_images): reading them point by point through
+    # pycolmap costs more than the adjustment's own setup.
+    lengths, track_images = model.track_images(point_ids)
+    owner = np.repeat(np.arange(len(point_ids)), lengths)
+    local_observations = np.bincount(owner, weights=np.isin(track_images, list(image_ids)),
+                                     minlength=len(point_ids))
+    short = lengths <= max_track_length
+    constant = ~short & (local_observations < 2)
+    for point_id in point_ids[short].tolist():
+        config.add_variable_point(point_id)
+    for point_id in point_ids[constant].tolist():
+        config.add_constant_point(point_id)
+    reached = set(track_images[short[owner]].tolist())
+    return point_ids[~constant].tolist(), reached

@@ -65,9 +65,9 @@ class NearestDescriptors:
     guided matching's candidates (paper, step 4c). Descriptors never change, so each
     ordered pair of images is searched once and kept, the least recently used pairs
     given up first beyond `max_bytes`. A registration's search against a neighbour's
-    observed keypoints comes from the same cosines (`search_subsets`). Searches against
-    several images run in parallel, one per thread, each with single-threaded BLAS:
-    on a loaded machine that is about twice as fast as BLAS's own threads.
+    observed keypoints comes from the same cosines (`search_subsets`). Every search runs
+    with single-threaded BLAS, searches against several images in parallel, one per
+    thread: on a loaded machine that is about twice as fast as BLAS's own threads.
 
     A pair whose exact search would compare more than `max_search_pairs` keypoint pairs
     (the cost grows with the product of the keypoint counts) takes its candidates from
@@ -114,12 +114,14 @@ class NearestDescriptors:
         def search(other_id: int, subset: np.ndarray):
             return self._search(image_id, other_id, subset, k)
 
-        if len(subsets) > 1 and self.num_threads > 1:
-            with BLAS.limit(limits=1, user_api="blas"), \
-                    ThreadPoolExecutor(min(self.num_threads, len(subsets))) as pool:
-                results = list(pool.map(search, *zip(*subsets)))
-        else:
-            results = [search(other_id, subset) for other_id, subset in subsets]
+        if not subsets:
+            return []
+        with BLAS.limit(limits=1, user_api="blas"):
+            if len(subsets) > 1 and self.num_threads > 1:
+                with ThreadPoolExecutor(min(self.num_threads, len(subsets))) as pool:
+                    results = list(pool.map(search, *zip(*subsets)))
+            else:
+                results = [search(other_id, subset) for other_id, subset in subsets]
         for (other_id, _), (index, angles, _) in zip(subsets, results):
             if not self._uses_matches(image_id, other_id):
                 self._keep((image_id, other_id), index, angles)

@@ -94,7 +94,8 @@ class ModelAdjuster:
         (final_max_error_ratio), and one more adjustment on what the last filter kept,
         with the final loss (BundleAdjustmentOptions.final_loss) where the reprojection
         errors look Gaussian and the robust one elsewhere, if that filter dropped
-        observations or the loss changes."""
+        observations or the loss changes. A round whose filter removed nothing ends the
+        rounds: the next would solve the same problem again from its optimum."""
         model, ba = self.model, self.ba
         registered = model.registered
         ratio = self.filtering.final_max_error_ratio if final else 0.0
@@ -104,8 +105,10 @@ class ModelAdjuster:
                                          median_reprojection_error(model, registered))
             self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True)
             with self.timer("filtering"):
-                removed, _ = filter_points(model, registered, self.filtering, final=final,
-                                           max_error_ratio=ratio)
+                removed, removed_points = filter_points(model, registered, self.filtering,
+                                                        final=final, max_error_ratio=ratio)
+            if not removed and not removed_points:
+                break
         if final:
             gaussian = outlier_share(model, registered) <= ba.final_loss_max_outlier_share
             loss = ba.final_loss if gaussian else ba.loss

@@ -81,8 +81,7 @@ def register_frame(model: Model, correspondences: Correspondences,
     `seed`: the RANSAC's (None: unseeded)."""
     pairs_of = {}
     for image_id, (kps, point_ids) in correspondences.items():
-        pairs = np.unique(np.stack([kps, point_ids], axis=1), axis=0) if len(kps) else \
-            np.zeros((0, 2), np.int64)
+        pairs = _distinct_pairs(kps, point_ids)
         pairs_of[image_id] = pairs[model.has_rays(image_id, pairs[:, 0])]
     image_ids = list(pairs_of)
     pairs = np.concatenate(list(pairs_of.values()))
@@ -118,6 +117,17 @@ def register_frame(model: Model, correspondences: Correspondences,
         _add_inliers(model, image_id, pairs[result.inlier_mask & (camera_index == k)],
                      registration.abs_pose_max_error_px)
     return Outcome.REGISTERED
+
+
+def _distinct_pairs(kps: np.ndarray, point_ids: np.ndarray) -> np.ndarray:
+    """The distinct (keypoint, point id) rows, sorted by keypoint then point id, as
+    np.unique(axis=0) gives them; through one integer key a row, whose sort is many
+    times faster than unique's over rows."""
+    if not len(kps):
+        return np.zeros((0, 2), np.int64)
+    num_point_ids = int(point_ids.max()) + 1
+    keys = np.unique(kps.astype(np.int64) * num_point_ids + point_ids)
+    return np.stack([keys // num_point_ids, keys % num_point_ids], axis=1)
 
 
 def _add_inliers(model: Model, image_id: int, inliers: np.ndarray,
