@@ -19,32 +19,31 @@ def triangulate_image(model: Model, image_id: int, neighbours: list[int],
     (observations added to existing points, new points)."""
     free = np.flatnonzero(model.point_of[image_id] < 0)
     candidates: dict[int, list[tuple[int, int]]] = {}  # kp -> [(other image, other kp)]
-    # The same, as arrays: kps, and the points their compatible features observe (-1: none).
-    kps_seen, points_seen = [], []
     model.nearest.prefetch(image_id, neighbours)
     for other_id in neighbours:
         kps, other_kps, _ = compatible_features(model, image_id, other_id, free, guided)
         for kp, other_kp in zip(kps.tolist(), other_kps.tolist()):
             candidates.setdefault(kp, []).append((other_id, other_kp))
-        kps_seen.append(kps)
-        points_seen.append(model.point_of[other_id][other_kps])
-    num_extended = _extend_tracks(model, image_id, np.concatenate(kps_seen or [free[:0]]),
-                                  np.concatenate(points_seen or [free[:0]]), triangulation)
+    num_extended = _extend_tracks(model, image_id, candidates, triangulation)
     num_new = _create_points(model, image_id, candidates, triangulation, min_views)
     return num_extended, num_new
 
 
-def _extend_tracks(model: Model, image_id: int, kps: np.ndarray, point_ids: np.ndarray,
+def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple[int, int]]],
                    triangulation: TriangulationOptions) -> int:
-    """Keypoints `kps` compatible with an observation of point `point_ids` (-1: none)
-    join its track when the point reprojects onto them (one keypoint per point, the
-    closest)."""
-    observed_ids = model.observations(image_id)[1]
-    new = (point_ids >= 0) & ~np.isin(point_ids, observed_ids)
-    if not new.any():
+    """Keypoints compatible with an observation of an existing point join its track
+    when the point reprojects onto them (one keypoint per point, the closest)."""
+    observed = set(model.observations(image_id)[1].tolist())
+    kps, point_ids = [], []
+    for kp, matches in candidates.items():
+        for other_id, other_kp in matches:
+            point_id = model.point_of[other_id][other_kp]
+            if point_id >= 0 and point_id not in observed:
+                kps.append(kp)
+                point_ids.append(point_id)
+    if not kps:
         return 0
-    kps, point_ids = kps[new], point_ids[new]
-    observed = set(observed_ids.tolist())
+    kps, point_ids = np.array(kps), np.array(point_ids)
     errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
     ok = errors <= triangulation.max_reproj_error_px
     kps, point_ids, errors = kps[ok], point_ids[ok], errors[ok]
