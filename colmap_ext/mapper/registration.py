@@ -97,22 +97,22 @@ def register_frame(model: Model, correspondences: Correspondences,
             result = solvers.absolute_pose(
                 rays, model.xyz[pairs[:, 1]], max_error=max_error,
                 min_num_inliers=registration.abs_pose_min_num_inliers, seed=seed)
-            rig_from_world = cams_from_rig[0].inverse() * result.cam_from_world
+            cams_from_world = [result.cam_from_world]
         else:
             result = solvers.generalized_absolute_pose(
                 rays, camera_index, model.xyz[pairs[:, 1]], cams_from_rig, max_error=max_error,
                 min_num_inliers=registration.abs_pose_min_num_inliers, seed=seed)
-            rig_from_world = result.rig_from_world
+            cams_from_world = [cam_from_rig * result.rig_from_world
+                               for cam_from_rig in cams_from_rig]
     except solvers.EstimationError:
         return Outcome.TOO_FEW_INLIERS
     num_keypoints = sum(len(np.unique(p[:, 0])) for p in pairs_of.values())
     if result.num_inliers < registration.abs_pose_min_inlier_ratio * num_keypoints:
         return Outcome.TOO_FEW_INLIERS
-    cams_from_world = [cam_from_rig * rig_from_world for cam_from_rig in cams_from_rig]
     if epipolar_support(model, dict(zip(image_ids, cams_from_world)), graph, registration) < \
             registration.min_epipolar_support:
         return Outcome.INCONSISTENT
-    model.register_frame(image_ids[0], rig_from_world)
+    model.register(image_ids[0], cams_from_world[0])
     for k, image_id in enumerate(image_ids):
         _add_inliers(model, image_id, pairs[result.inlier_mask & (camera_index == k)],
                      registration.abs_pose_max_error_px)
