@@ -29,6 +29,7 @@ from colmap_ext.mapper.bundle_adjustment import adjustment_options
 from colmap_ext.mapper.options import BA_LOSSES, MapperOptions
 
 MAX_ITERATIONS = 300
+GRADIENT_TOLERANCE = 1e-4  # to convergence, below the mapper's
 
 
 def residuals(reconstruction: pycolmap.Reconstruction) -> np.ndarray:
@@ -86,9 +87,11 @@ def adjustment(reconstruction: pycolmap.Reconstruction, loss: str,
         config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     else:
         config.set_constant_rig_from_world_pose(reconstruction.images[constant_image_id].frame_id)
-    return pycolmap.create_default_ceres_bundle_adjuster(
-        adjustment_options(options.bundle_adjustment, MAX_ITERATIONS, options.threads()), config,
-        reconstruction)
+    ba_options = adjustment_options(options.bundle_adjustment, local=False,
+                                    num_threads=options.threads())
+    ba_options.ceres.solver_options.max_num_iterations = MAX_ITERATIONS
+    ba_options.ceres.solver_options.gradient_tolerance = GRADIENT_TOLERANCE
+    return pycolmap.create_default_ceres_bundle_adjuster(ba_options, config, reconstruction)
 
 
 def rotation_deviations(reconstruction: pycolmap.Reconstruction, names: list[str],

@@ -15,14 +15,14 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import BundleAdjustmentOptions
 
 
-def adjustment_options(ba: BundleAdjustmentOptions, max_iterations: int, num_threads: int,
+def adjustment_options(ba: BundleAdjustmentOptions, local: bool, num_threads: int,
                        refine_intrinsics: bool = False, loss: str | None = None,
                        loss_scale_px: float | None = None) -> pycolmap.BundleAdjustmentOptions:
-    """pycolmap's options for one adjustment with ours: the loss and its scale (default:
-    the robust one, BundleAdjustmentOptions.loss and loss_scale_px; a model's last
-    adjustment names its own, which in least squares runs to convergence), Ceres's limits
-    and threads, and the intrinsics refined only where `refine_intrinsics` and the options
-    ask for it."""
+    """pycolmap's options for one adjustment, local or global, with ours: the loss and its
+    scale (default: the robust one, BundleAdjustmentOptions.loss and loss_scale_px; a
+    model's last adjustment names its own, which in least squares has its own function
+    tolerance), Ceres's limits (local_* or global_*) and threads, and the intrinsics refined
+    only where `refine_intrinsics` and the options ask for it."""
     refine = refine_intrinsics and ba.refines_intrinsics
     ba_options = pycolmap.BundleAdjustmentOptions(
         refine_focal_length=refine and ba.refine_focal_length,
@@ -32,7 +32,10 @@ def adjustment_options(ba: BundleAdjustmentOptions, max_iterations: int, num_thr
     ba_options.ceres.loss_function_type = getattr(pycolmap.LossFunctionType,
                                                   (loss or ba.loss).upper())
     ba_options.ceres.loss_function_scale = loss_scale_px or ba.loss_scale_px
-    ba_options.ceres.solver_options.max_num_iterations = max_iterations
+    ba_options.ceres.solver_options.max_num_iterations = \
+        ba.local_max_iterations if local else ba.global_max_iterations
+    ba_options.ceres.solver_options.gradient_tolerance = \
+        ba.local_gradient_tolerance if local else ba.global_gradient_tolerance
     ba_options.ceres.solver_options.function_tolerance = \
         ba.least_squares_function_tolerance if loss == "trivial" else ba.function_tolerance
     ba_options.ceres.solver_options.num_threads = num_threads
@@ -45,7 +48,7 @@ def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, ba: BundleAdj
                           num_threads: int) -> None:
     """Global adjustment, in place, of every registered pose and every point of a
     reconstruction that no Model holds (a joined one): the options' loss and Ceres limits
-    (global_max_iterations), intrinsics constant, rigs as `hold_rigs_and_fix_gauge` says."""
+    (global_*), intrinsics constant, rigs as `hold_rigs_and_fix_gauge` says."""
     config = pycolmap.BundleAdjustmentConfig()
     image_ids = sorted(reconstruction.reg_image_ids())
     for image_id in image_ids:
@@ -53,12 +56,12 @@ def adjust_reconstruction(reconstruction: pycolmap.Reconstruction, ba: BundleAdj
     for camera_id in reconstruction.cameras:
         config.set_constant_cam_intrinsics(camera_id)
     hold_rigs_and_fix_gauge(config, reconstruction, image_ids, set(), ba)
-    ba_options = adjustment_options(ba, ba.global_max_iterations, num_threads)
+    ba_options = adjustment_options(ba, local=False, num_threads=num_threads)
     pycolmap.create_default_bundle_adjuster(ba_options, config, reconstruction).solve()
 
 
 def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOptions,
-                  max_iterations: int, num_threads: int, refine_intrinsics: bool = False,
+                  local: bool, num_threads: int, refine_intrinsics: bool = False,
                   loss: str | None = None, loss_scale_px: float | None = None) -> int:
     """Adjust, on the model's reconstruction in place, the frame poses of `image_ids`
     (except the model's fixed frames) and the points they observe, as COLMAP's
@@ -66,7 +69,8 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
     images brings its other observations in, their poses constant; a longer track is
     already well determined and enters through the observations of `image_ids` alone,
     held constant where they are just one; the rigs and the gauge as
-    `hold_rigs_and_fix_gauge` says. With `refine_intrinsics`, the intrinsics the options name are refined
+    `hold_rigs_and_fix_gauge` says; Ceres's limits are the options' local_* or global_*
+    ones. With `refine_intrinsics`, the intrinsics the options name are refined
     too, but for the cameras in BundleAdjustmentOptions.constant_camera_ids; `loss` and
     `loss_scale_px` replace the options' robust loss and its scale. Returns the number of
     Ceres iterations."""
@@ -93,7 +97,7 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
     hold_rigs_and_fix_gauge(config, reconstruction,
                             [i for i in model.registration_order if i in requested], constant, ba)
 
-    ba_options = adjustment_options(ba, max_iterations, num_threads, refine_intrinsics,
+    ba_options = adjustment_options(ba, local, num_threads, refine_intrinsics,
                                     loss=loss, loss_scale_px=loss_scale_px)
     frame_ids = {model.frame_id(i) for i in requested - fixed}
     before = _variables(reconstruction, frame_ids)

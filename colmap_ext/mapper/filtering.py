@@ -80,6 +80,13 @@ def outlier_share(model: Model, image_ids: list[int]) -> float:
     return float(np.mean(errors > OUTLIER_ERROR_RATIO * np.median(errors)))
 
 
+def errors_look_gaussian(model: Model, image_ids: list[int], filtering: FilteringOptions) -> bool:
+    """Whether the reprojection errors of `image_ids` look like Gaussian keypoint noise
+    alone: at most FilteringOptions.gaussian_max_outlier_share of them beyond
+    OUTLIER_ERROR_RATIO x their median."""
+    return outlier_share(model, image_ids) <= filtering.gaussian_max_outlier_share
+
+
 def _reprojection_errors(model: Model, image_ids: list[int]) -> np.ndarray:
     errors = [model.reprojection_errors(image_id, kps, model.xyz[point_ids])
               for image_id in image_ids for kps, point_ids in [model.observations(image_id)]]

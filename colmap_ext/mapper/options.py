@@ -131,7 +131,8 @@ class TriangulationOptions:
     min_tri_angle_deg: float = 1.5
     # A finished model's points are triangulated again from its poses, each observation
     # within this many times the model's median reprojection error (at most
-    # max_reproj_error_px); 0: the model keeps the points it grew with.
+    # max_reproj_error_px) but where its errors look Gaussian
+    # (FilteringOptions.gaussian_max_outlier_share); 0: the model keeps the points it grew with.
     retriangulation_max_error_ratio: float = 4.0
 
     @property
@@ -169,6 +170,13 @@ class FilteringOptions:
     # model is adjusted again without them, with BundleAdjustmentOptions.final_loss; 0:
     # max_reproj_error_px alone.
     final_max_error_ratio: float = 10.0
+    # A model's reprojection errors look like Gaussian keypoint noise where at most this
+    # share of them lie beyond 3x their median (filtering.outlier_share; Gaussian noise
+    # puts 0.2 % there). Such a model has no near-miss matches to leave out: it ends on
+    # least squares (BundleAdjustmentOptions.final_loss), and its retriangulation keeps
+    # the observations within the noise's limits, without
+    # TriangulationOptions.retriangulation_max_error_ratio, which would cut the noise's tail.
+    gaussian_max_outlier_share: float = 0.01
 
     def check(self) -> None:
         _require(self.max_reproj_error_px > 0, self, "max_reproj_error_px", "> 0")
@@ -178,6 +186,8 @@ class FilteringOptions:
         _require(self.max_rotation_uncertainty > 0, self, "max_rotation_uncertainty", "> 0")
         _require(self.final_max_error_ratio >= 0, self, "final_max_error_ratio", ">= 0")
         _require(self.noise_max_error_ratio >= 0, self, "noise_max_error_ratio", ">= 0")
+        _require(0 <= self.gaussian_max_outlier_share <= 1, self, "gaussian_max_outlier_share",
+                 "in [0, 1]")
 
 
 @dataclass
@@ -189,12 +199,16 @@ class BundleAdjustmentOptions:
     # Points seen by more images enter a local adjustment through the local images'
     # observations alone; shorter tracks bring their other images in, poses constant.
     local_max_track_length: int = 15
-    # Ceres iterations of a local adjustment.
+    # Ceres iterations of a local adjustment ...
     local_max_iterations: int = 25
+    # ... which also stops when no parameter's gradient exceeds this: COLMAP's incremental
+    # mapper's value; pycolmap's default 1e-4 kept solves iterating on steps far below the noise.
+    local_gradient_tolerance: float = 10.0
     # A global adjustment whenever the registered images have grown by this ratio.
     global_images_ratio: float = 1.1
-    # Ceres iterations of a global adjustment.
+    # Ceres iterations of a global adjustment, and its gradient tolerance (as local).
     global_max_iterations: int = 50
+    global_gradient_tolerance: float = 1.0
     # The robust loss, one of BA_LOSSES, and its scale (px) ...
     loss: str = "cauchy"
     loss_scale_px: float = 1.0
@@ -203,19 +217,17 @@ class BundleAdjustmentOptions:
     # noise down-weights good observations and slows Ceres down; 1.7 x the median is
     # twice the standard deviation of Gaussian noise.
     noise_loss_scale_ratio: float = 1.7
-    # The loss of a finished model's last adjustment, after its last filter. Least
-    # squares ("trivial") gives the maximum-likelihood poses on the observations kept,
-    # which the robust loss down-weights, where the keypoint noise is Gaussian ...
+    # The loss of a finished model's last adjustment, after its last filter, where its
+    # reprojection errors look Gaussian (FilteringOptions.gaussian_max_outlier_share):
+    # least squares ("trivial") gives the maximum-likelihood poses on the observations
+    # kept, which the robust loss down-weights. Elsewhere (wrong or poorly localised
+    # matches) the last adjustment keeps the robust loss, which least squares would let
+    # them pull (BENCHMARKS.md, "Why the defaults").
     final_loss: str = "trivial"
-    # ... which the model's reprojection errors must show: at most this share of them
-    # beyond 3x their median (filtering.outlier_share; Gaussian noise puts 0.2 % there).
-    # Elsewhere (wrong or poorly localised matches) the last adjustment keeps the robust
-    # loss, which least squares would let them pull (BENCHMARKS.md, "Why the defaults").
-    final_loss_max_outlier_share: float = 0.01
     # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
     function_tolerance: float = 1e-5
     # ... and in a model's last adjustment where it is least squares (final_loss): the
-    # model's answer, run to convergence as COLMAP's global adjustments are.
+    # model's answer, run to the gradient tolerance as COLMAP's global adjustments are.
     least_squares_function_tolerance: float = 0.0
     # Smaller problems (residuals) are solved on one thread, larger on MapperOptions.threads().
     min_num_residuals_for_multi_threading: int = 50000
@@ -241,11 +253,11 @@ class BundleAdjustmentOptions:
         _require(self.local_max_track_length >= 2, self, "local_max_track_length", ">= 2")
         _require(self.global_images_ratio > 1, self, "global_images_ratio", "> 1")
         _require(self.global_max_iterations >= 1, self, "global_max_iterations", ">= 1")
+        for name in ("local_gradient_tolerance", "global_gradient_tolerance"):
+            _require(getattr(self, name) >= 0, self, name, ">= 0")
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.final_loss in BA_LOSSES, self, "final_loss", f"one of {', '.join(BA_LOSSES)}")
         _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
-        _require(0 <= self.final_loss_max_outlier_share <= 1, self,
-                 "final_loss_max_outlier_share", "in [0, 1]")
         _require(self.noise_loss_scale_ratio >= 0, self, "noise_loss_scale_ratio", ">= 0")
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
         _require(self.least_squares_function_tolerance >= 0, self,

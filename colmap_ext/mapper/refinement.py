@@ -12,8 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from colmap_ext.mapper.bundle_adjustment import bundle_adjust
-from colmap_ext.mapper.filtering import (error_limit, filter_points, median_reprojection_error,
-                                          outlier_share)
+from colmap_ext.mapper.filtering import (error_limit, errors_look_gaussian, filter_points,
+                                          median_reprojection_error)
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (BundleAdjustmentOptions, FilteringOptions,
                                        GuidedMatchingOptions, MapperOptions,
@@ -84,7 +84,7 @@ class ModelAdjuster:
 
     def local_adjustment(self, image_ids: list[int]) -> None:
         """Adjust `image_ids` (bundle_adjust's local rule for the points), then filter them."""
-        self._bundle_adjust(image_ids, self.ba.local_max_iterations)
+        self._bundle_adjust(image_ids, local=True)
         with self.timer("filtering"):
             filter_points(self.model, image_ids, self.filtering)
 
@@ -93,7 +93,7 @@ class ModelAdjuster:
         rounds, their filter also relative to the model's median error
         (final_max_error_ratio), and one more adjustment on what the last filter kept,
         with the final loss (BundleAdjustmentOptions.final_loss) where the reprojection
-        errors look Gaussian and the robust one elsewhere, if that filter dropped
+        errors look Gaussian (filtering.errors_look_gaussian) and the robust one elsewhere, if that filter dropped
         observations or the loss changes. A round whose filter removed nothing ends the
         rounds: the next would solve the same problem again from its optimum."""
         model, ba = self.model, self.ba
@@ -103,23 +103,22 @@ class ModelAdjuster:
             with self.timer("filtering"):
                 self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio *
                                          median_reprojection_error(model, registered))
-            self._bundle_adjust(registered, ba.global_max_iterations, refine_intrinsics=True)
+            self._bundle_adjust(registered, local=False, refine_intrinsics=True)
             with self.timer("filtering"):
                 removed, removed_points = filter_points(model, registered, self.filtering,
                                                         final=final, max_error_ratio=ratio)
             if not removed and not removed_points:
                 break
         if final:
-            gaussian = outlier_share(model, registered) <= ba.final_loss_max_outlier_share
+            gaussian = errors_look_gaussian(model, registered, self.filtering)
             loss = ba.final_loss if gaussian else ba.loss
             if ratio > 0 and removed or loss != ba.loss:
-                self._bundle_adjust(registered, ba.global_max_iterations,
-                                    refine_intrinsics=True, loss=loss)
+                self._bundle_adjust(registered, local=False, refine_intrinsics=True, loss=loss)
 
-    def _bundle_adjust(self, image_ids: list[int], max_iterations: int,
+    def _bundle_adjust(self, image_ids: list[int], local: bool,
                        refine_intrinsics: bool = False, loss: str | None = None) -> None:
         with self.timer("bundle adjustment"):
-            iterations = bundle_adjust(self.model, image_ids, self.ba, max_iterations,
+            iterations = bundle_adjust(self.model, image_ids, self.ba, local,
                                        self.num_threads, refine_intrinsics, loss,
                                        self.loss_scale_px)
         self.timer.counts["bundle adjustment solves"] += 1
@@ -148,15 +147,17 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     (final). The points it grew with were accepted within max_reproj_error_px while
     the poses were still moving; again from the final poses, each observation must lie
     within retriangulation_max_error_ratio x the model's median reprojection error
-    (filtering.error_limit), which leaves out the near-miss matches. Returns the
-    number of points."""
+    (filtering.error_limit), which leaves out the near-miss matches; where the errors
+    look like Gaussian noise alone (filtering.errors_look_gaussian) there are none, and
+    that cap would only cut the noise's tail. Returns the number of points."""
     graphs = MatchGraphs.of(model, matches)
     registered = model.registered
     triangulation = options.triangulation
+    gaussian = errors_look_gaussian(model, registered, options.filtering)
     limit = error_limit(triangulation.max_reproj_error_px,
                         median_reprojection_error(model, registered),
                         options.filtering.noise_max_error_ratio,
-                        triangulation.retriangulation_max_error_ratio)
+                        0.0 if gaussian else triangulation.retriangulation_max_error_ratio)
     strict = dataclasses.replace(triangulation, max_reproj_error_px=limit)
     with timer("triangulation"):
         for point_id in model.point_ids:
