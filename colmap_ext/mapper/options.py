@@ -154,8 +154,10 @@ class FilteringOptions:
     # An observation is kept while it reprojects within this error (px) ...
     max_reproj_error_px: float = 3.0
     # ... or within this many times the median error, where the keypoint noise reaches
-    # max_reproj_error_px: 3 x the median is 3.5 standard deviations of Gaussian noise.
-    noise_max_error_ratio: float = 3.0
+    # max_reproj_error_px: 4 x the median is 4.7 standard deviations of Gaussian noise,
+    # beyond which one true observation in 65 000 lies (3 x, 3.5: one in 500, which
+    # split tracks and cost the poses; BENCHMARKS.md, "Why the defaults").
+    noise_max_error_ratio: float = 4.0
     # A point is kept while its widest pair of rays spans this angle (deg).
     min_tri_angle_deg: float = 1.5
     # Images a point must be seen in ...
