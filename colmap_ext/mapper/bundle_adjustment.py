@@ -19,9 +19,8 @@ def adjustment_options(ba: BundleAdjustmentOptions, local: bool, num_threads: in
                        refine_intrinsics: bool = False, loss: str | None = None,
                        loss_scale_px: float | None = None) -> pycolmap.BundleAdjustmentOptions:
     """pycolmap's options for one adjustment, local or global, with ours: the loss and its
-    scale (default: the robust one, BundleAdjustmentOptions.loss and loss_scale_px; a
-    model's last adjustment names its own, which in least squares has its own function
-    tolerance), Ceres's limits (local_* or global_*) and threads, and the intrinsics refined
+    scale (default: the robust one, BundleAdjustmentOptions.loss and loss_scale_px; least
+    squares has its own function tolerance), Ceres's limits (local_* or global_*) and threads, and the intrinsics refined
     only where `refine_intrinsics` and the options ask for it."""
     refine = refine_intrinsics and ba.refines_intrinsics
     ba_options = pycolmap.BundleAdjustmentOptions(
@@ -37,7 +36,8 @@ def adjustment_options(ba: BundleAdjustmentOptions, local: bool, num_threads: in
     ba_options.ceres.solver_options.gradient_tolerance = \
         ba.local_gradient_tolerance if local else ba.global_gradient_tolerance
     ba_options.ceres.solver_options.function_tolerance = \
-        ba.least_squares_function_tolerance if loss == "trivial" else ba.function_tolerance
+        ba.least_squares_function_tolerance if (loss or ba.loss) == "trivial" \
+        else ba.function_tolerance
     ba_options.ceres.solver_options.num_threads = num_threads
     ba_options.ceres.min_num_residuals_for_cpu_multi_threading = \
         ba.min_num_residuals_for_multi_threading

@@ -12,7 +12,7 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import FilteringOptions
 
 # An observation whose reprojection error exceeds this many times the model's median
-# counts as an outlier in `outlier_share`.
+# counts as an outlier in `errors_look_gaussian`.
 OUTLIER_ERROR_RATIO = 3.0
 
 
@@ -65,29 +65,23 @@ def error_limit(max_error_px: float, median_error_px: float, noise_max_error_rat
 
 def median_reprojection_error(model: Model, image_ids: list[int]) -> float:
     """The median reprojection error (px) of the observations in `image_ids`; inf if none."""
-    errors = _reprojection_errors(model, image_ids)
+    errors = reprojection_errors(model, image_ids)
     return float(np.median(errors)) if len(errors) else np.inf
 
 
-def outlier_share(model: Model, image_ids: list[int]) -> float:
-    """The share of the observations in `image_ids` whose reprojection error exceeds
-    OUTLIER_ERROR_RATIO x their median: 0.2 % where the keypoint noise is Gaussian (the
-    errors then follow a Rayleigh distribution), more where wrong or poorly localised
-    matches remain; 1 if there are no observations."""
-    errors = _reprojection_errors(model, image_ids)
+def errors_look_gaussian(errors: np.ndarray, filtering: FilteringOptions) -> bool:
+    """Whether reprojection errors look like Gaussian keypoint noise alone: at most
+    FilteringOptions.gaussian_max_outlier_share of them beyond OUTLIER_ERROR_RATIO x their
+    median (Gaussian noise puts 0.2 % there: the errors follow a Rayleigh distribution),
+    where wrong or poorly localised matches put more; False if there are none."""
     if not len(errors):
-        return 1.0
-    return float(np.mean(errors > OUTLIER_ERROR_RATIO * np.median(errors)))
+        return False
+    share = np.mean(errors > OUTLIER_ERROR_RATIO * np.median(errors))
+    return bool(share <= filtering.gaussian_max_outlier_share)
 
 
-def errors_look_gaussian(model: Model, image_ids: list[int], filtering: FilteringOptions) -> bool:
-    """Whether the reprojection errors of `image_ids` look like Gaussian keypoint noise
-    alone: at most FilteringOptions.gaussian_max_outlier_share of them beyond
-    OUTLIER_ERROR_RATIO x their median."""
-    return outlier_share(model, image_ids) <= filtering.gaussian_max_outlier_share
-
-
-def _reprojection_errors(model: Model, image_ids: list[int]) -> np.ndarray:
+def reprojection_errors(model: Model, image_ids: list[int]) -> np.ndarray:
+    """The reprojection errors (px) of every observation in `image_ids`."""
     errors = [model.reprojection_errors(image_id, kps, model.xyz[point_ids])
               for image_id in image_ids for kps, point_ids in [model.observations(image_id)]]
     return np.concatenate(errors) if errors else np.zeros(0)

@@ -169,13 +169,12 @@ class FilteringOptions:
     max_rotation_uncertainty: float = 15.0
     # A finished model's filter also drops observations beyond this many times its median
     # reprojection error (3 would be 3.5 standard deviations of Gaussian noise), and the
-    # model is adjusted again without them, with BundleAdjustmentOptions.final_loss; 0:
-    # max_reproj_error_px alone.
+    # model is adjusted again without them; 0: max_reproj_error_px alone.
     final_max_error_ratio: float = 10.0
     # A model's reprojection errors look like Gaussian keypoint noise where at most this
     # share of them lie beyond 3x their median (filtering.outlier_share; Gaussian noise
-    # puts 0.2 % there). Such a model has no near-miss matches to leave out: it ends on
-    # least squares (BundleAdjustmentOptions.final_loss), and its retriangulation keeps
+    # puts 0.2 % there). Such a model has no near-miss matches to leave out: it is adjusted
+    # in least squares (BundleAdjustmentOptions.gaussian_loss), and its retriangulation keeps
     # the observations within the noise's limits, without
     # TriangulationOptions.retriangulation_max_error_ratio, which would cut the noise's tail.
     gaussian_max_outlier_share: float = 0.01
@@ -219,17 +218,16 @@ class BundleAdjustmentOptions:
     # noise down-weights good observations and slows Ceres down; 1.7 x the median is
     # twice the standard deviation of Gaussian noise.
     noise_loss_scale_ratio: float = 1.7
-    # The loss of a finished model's last adjustment, after its last filter, where its
-    # reprojection errors look Gaussian (FilteringOptions.gaussian_max_outlier_share):
-    # least squares ("trivial") gives the maximum-likelihood poses on the observations
-    # kept, which the robust loss down-weights. Elsewhere (wrong or poorly localised
-    # matches) the last adjustment keeps the robust loss, which least squares would let
-    # them pull (BENCHMARKS.md, "Why the defaults").
-    final_loss: str = "trivial"
+    # The loss where a model's reprojection errors look Gaussian, measured before each
+    # global adjustment (FilteringOptions.gaussian_max_outlier_share): least squares
+    # ("trivial") gives the maximum-likelihood poses on the observations kept, which the
+    # robust loss down-weights, in fewer iterations. Elsewhere (wrong or poorly localised
+    # matches) the robust loss stays, which least squares would let them pull
+    # (BENCHMARKS.md, "Why the defaults").
+    gaussian_loss: str = "trivial"
     # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
     function_tolerance: float = 1e-5
-    # ... and in a model's last adjustment where it is least squares (final_loss): the
-    # model's answer, run to the gradient tolerance as COLMAP's global adjustments are.
+    # ... and in least squares: run to the gradient tolerance, as COLMAP's adjustments are.
     least_squares_function_tolerance: float = 0.0
     # Smaller problems (residuals) are solved on one thread, larger on MapperOptions.threads().
     min_num_residuals_for_multi_threading: int = 50000
@@ -258,7 +256,8 @@ class BundleAdjustmentOptions:
         for name in ("local_gradient_tolerance", "global_gradient_tolerance"):
             _require(getattr(self, name) >= 0, self, name, ">= 0")
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")
-        _require(self.final_loss in BA_LOSSES, self, "final_loss", f"one of {', '.join(BA_LOSSES)}")
+        _require(self.gaussian_loss in BA_LOSSES, self, "gaussian_loss",
+                 f"one of {', '.join(BA_LOSSES)}")
         _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
         _require(self.noise_loss_scale_ratio >= 0, self, "noise_loss_scale_ratio", ">= 0")
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")

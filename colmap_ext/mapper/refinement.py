@@ -13,7 +13,7 @@ import numpy as np
 
 from colmap_ext.mapper.bundle_adjustment import bundle_adjust
 from colmap_ext.mapper.filtering import (error_limit, errors_look_gaussian, filter_points,
-                                          median_reprojection_error)
+                                          reprojection_errors)
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (BundleAdjustmentOptions, FilteringOptions,
                                        GuidedMatchingOptions, MapperOptions,
@@ -64,9 +64,11 @@ def triangulate_images(model: Model, image_ids: Iterable[int], graphs: MatchGrap
 
 class ModelAdjuster:
     """Bundle adjustment of one model, each solve followed by its filtering, timed. The
-    robust loss's scale is raised where the measured noise reaches it (see
-    BundleAdjustmentOptions.noise_loss_scale_ratio): set at each global adjustment, kept
-    for the local ones after it."""
+    loss follows the model's reprojection errors, measured before each global
+    adjustment and kept for the local ones after it: least squares
+    (BundleAdjustmentOptions.gaussian_loss) where they look like Gaussian noise
+    (filtering.errors_look_gaussian), the robust loss elsewhere, its scale raised where
+    the noise reaches it (BundleAdjustmentOptions.noise_loss_scale_ratio)."""
 
     def __init__(self, model: Model, ba: BundleAdjustmentOptions, filtering: FilteringOptions,
                  num_threads: int, timer: StageTimer) -> None:
@@ -75,6 +77,7 @@ class ModelAdjuster:
         self.filtering = filtering
         self.num_threads = num_threads
         self.timer = timer
+        self.loss = ba.loss
         self.loss_scale_px = ba.loss_scale_px
 
     @classmethod
@@ -91,18 +94,15 @@ class ModelAdjuster:
     def global_adjustment(self, final: bool = False, rounds: int = 2) -> None:
         """Adjust every registered image, then filter. `final`, the model's end: `rounds`
         rounds, their filter also relative to the model's median error
-        (final_max_error_ratio), and one more adjustment on what the last filter kept,
-        with the final loss (BundleAdjustmentOptions.final_loss) where the reprojection
-        errors look Gaussian (filtering.errors_look_gaussian) and the robust one elsewhere, if that filter dropped
-        observations or the loss changes. A round whose filter removed nothing ends the
-        rounds: the next would solve the same problem again from its optimum."""
-        model, ba = self.model, self.ba
+        (final_max_error_ratio), and one more adjustment if the last filter dropped
+        observations or the errors it left call for another loss. A round whose filter
+        removed nothing ends the rounds: the next would solve the same problem again from
+        its optimum."""
+        model = self.model
         registered = model.registered
         ratio = self.filtering.final_max_error_ratio if final else 0.0
         for _ in range(rounds if final else 1):
-            with self.timer("filtering"):
-                self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio *
-                                         median_reprojection_error(model, registered))
+            self._follow_errors()
             self._bundle_adjust(registered, local=False, refine_intrinsics=True)
             with self.timer("filtering"):
                 removed, removed_points = filter_points(model, registered, self.filtering,
@@ -110,16 +110,25 @@ class ModelAdjuster:
             if not removed and not removed_points:
                 break
         if final:
-            gaussian = errors_look_gaussian(model, registered, self.filtering)
-            loss = ba.final_loss if gaussian else ba.loss
-            if ratio > 0 and removed or loss != ba.loss:
-                self._bundle_adjust(registered, local=False, refine_intrinsics=True, loss=loss)
+            loss = self.loss
+            self._follow_errors()
+            if ratio > 0 and removed or self.loss != loss:
+                self._bundle_adjust(registered, local=False, refine_intrinsics=True)
+
+    def _follow_errors(self) -> None:
+        """Choose the loss and its scale from the registered images' reprojection errors."""
+        ba = self.ba
+        with self.timer("filtering"):
+            errors = reprojection_errors(self.model, self.model.registered)
+        median = float(np.median(errors)) if len(errors) else 0.0
+        self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio * median)
+        self.loss = ba.gaussian_loss if errors_look_gaussian(errors, self.filtering) else ba.loss
 
     def _bundle_adjust(self, image_ids: list[int], local: bool,
-                       refine_intrinsics: bool = False, loss: str | None = None) -> None:
+                       refine_intrinsics: bool = False) -> None:
         with self.timer("bundle adjustment"):
             iterations = bundle_adjust(self.model, image_ids, self.ba, local,
-                                       self.num_threads, refine_intrinsics, loss,
+                                       self.num_threads, refine_intrinsics, self.loss,
                                        self.loss_scale_px)
         self.timer.counts["bundle adjustment solves"] += 1
         self.timer.counts["bundle adjustment iterations"] += iterations
@@ -153,9 +162,10 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     graphs = MatchGraphs.of(model, matches)
     registered = model.registered
     triangulation = options.triangulation
-    gaussian = errors_look_gaussian(model, registered, options.filtering)
+    errors = reprojection_errors(model, registered)
+    gaussian = errors_look_gaussian(errors, options.filtering)
     limit = error_limit(triangulation.max_reproj_error_px,
-                        median_reprojection_error(model, registered),
+                        float(np.median(errors)) if len(errors) else np.inf,
                         options.filtering.noise_max_error_ratio,
                         0.0 if gaussian else triangulation.retriangulation_max_error_ratio)
     strict = dataclasses.replace(triangulation, max_reproj_error_px=limit)
