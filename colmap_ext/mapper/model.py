@@ -297,7 +297,7 @@ class Model:
         point (a fisheye's directions at 90 degrees or more from its axis): bundle
         adjustment could not take such an observation. `cam_from_world`: the image's pose
         (default: its registered one)."""
-        pose = (cam_from_world or self.pose(image_id)).matrix()
+        pose = (self.pose(image_id) if cam_from_world is None else cam_from_world).matrix()
         x_cam = xyz @ pose[:, :3].T + pose[:, 3]
         ray = self.rays[image_id][kps]
         along = np.einsum("ij,ij->i", x_cam, ray)

@@ -110,7 +110,7 @@ def triangulate_tracks(model: Model, tracks: list[dict[int, int]], min_angle_deg
             views.append(view_of[image_id])
             points.append(p)
             rays.append(model.rays[image_id][kp])
-    poses = [cams_from_world[i] if cams_from_world else model.pose(i) for i in image_ids]
+    poses = [model.pose(i) if cams_from_world is None else cams_from_world[i] for i in image_ids]
     return solvers.triangulate_tracks(poses, np.array(views),
                                       np.array(points), np.array(rays), num_points=len(tracks),
                                       min_angle_deg=min_angle_deg)
@@ -130,8 +130,8 @@ def _reprojection_ok(model: Model, tracks: list[dict[int, int]], xyz: np.ndarray
             by_image[image_id][1].append(kp)
     for image_id, (ps, kps) in by_image.items():
         ps = np.array(ps)
-        errors = model.reprojection_errors(image_id, np.array(kps), np.nan_to_num(xyz[ps]),
-                                           cams_from_world[image_id] if cams_from_world else None)
+        pose = None if cams_from_world is None else cams_from_world[image_id]
+        errors = model.reprojection_errors(image_id, np.array(kps), np.nan_to_num(xyz[ps]), pose)
         bad = ps[errors > max_error_px]
         ok[bad] = False
     return ok
