@@ -24,8 +24,10 @@ from colmap_ext.mapper.options import (InitializationOptions, TriangulationOptio
 from colmap_ext.mapper.triangulation import shared_observation_groups, triangulate_points
 from colmap_ext.mapper.two_view import Pair, epipolar_inliers, relative_pose
 
-# Pairs evaluated when the mapper chooses: the ones with most verified matches.
+# Pairs evaluated when the mapper chooses: the ones with most verified matches; and
+# frames, those with most verified matches between their images.
 MAX_CANDIDATE_PAIRS = 40
+MAX_CANDIDATE_FRAMES = 40
 
 
 @dataclass
@@ -138,19 +140,24 @@ def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray],
         return _requested_pair(model, matches, initialization, two_view, triangulation, seed)
     pair = best_pair(model, matches, initialization, two_view, triangulation, excluded, seed)
     frames = [reconstruct_frame(model, image_ids[0], matches, two_view, triangulation)
-              for image_ids in _frames_with_several_images(model)]
+              for image_ids in _candidate_frames(model, matches)]
     frame = max(frames, key=lambda frame: len(frame.tracks), default=None)
     if frame is None or len(frame.tracks) < initialization.min_num_inliers:
         return pair
     return frame if pair is None or len(frame.tracks) > len(pair.matches) else pair
 
 
-def _frames_with_several_images(model: Model) -> list[list[int]]:
-    """The images of each frame of the model with two images or more."""
-    frames: dict[int, list[int]] = {}
-    for image_id in model.image_ids:
-        frames.setdefault(model.frame_id(image_id), []).append(image_id)
-    return [image_ids for image_ids in frames.values() if len(image_ids) >= 2]
+def _candidate_frames(model: Model, matches: dict[Pair, np.ndarray]) -> list[list[int]]:
+    """The images of the model's frames with most verified matches between their images
+    (at most MAX_CANDIDATE_FRAMES frames, each with some)."""
+    frame_of = {image_id: model.frame_id(image_id) for image_id in model.image_ids}
+    within: dict[int, int] = {}  # frame id -> verified matches between its images
+    for (id1, id2), pair_matches in matches.items():
+        if frame_of[id1] == frame_of[id2]:
+            within[frame_of[id1]] = within.get(frame_of[id1], 0) + len(pair_matches)
+    best = sorted(within, key=lambda frame_id: -within[frame_id])[:MAX_CANDIDATE_FRAMES]
+    return [[image_id for image_id in model.image_ids if frame_of[image_id] == frame_id]
+            for frame_id in best]
 
 
 def best_pair(model: Model, matches: dict[Pair, np.ndarray],
