@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -15,7 +16,7 @@ import yaml
 from colmap_ext import cli, evaluate, mapper, reconstruct, rigs
 from colmap_ext.compare import compare
 from colmap_ext.errors import UserError
-from colmap_ext.geometry import rotation_angles_deg
+from colmap_ext.geometry import fit_similarity, rotation_angles_deg
 from colmap_ext.ground_truth import GroundTruth
 from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
 from colmap_ext.synthetic.pycolmap_generator import write_pycolmap_dataset
@@ -364,3 +365,72 @@ def test_refining_the_rig_moves_its_cameras_only_where_asked(tmp_path: Path) -> 
                      "--Mapper.constant_rig_list_path", tmp_path / "rigs.txt") == \
         pytest.approx(0.3, abs=1e-9)
     assert turned_by(tmp_path / "refined", "--Mapper.ba_refine_sensor_from_rig", "1") < 0.1
+
+
+def wide_rig(database_path: Path, seed: int) -> pycolmap.Reconstruction:
+    """COLMAP's generator: one rig of 3 cameras about 0.5 apart (the scene about 5 away),
+    4 frames, 0.5 px noise; returns the truth."""
+    return write_pycolmap_dataset(database_path, None, seed, 12, 0.5, 200, 3,
+                                  rig_baseline=0.5)
+
+
+def assert_metric_and_near_the_truth(model: pycolmap.Reconstruction,
+                                     truth: pycolmap.Reconstruction) -> None:
+    """Every image registered, the rig kept, and the poses within 0.1 deg of the truth's
+    after a similarity whose scale is the truth's to 1 %: the rig's baseline made the
+    model metric."""
+    assert model.num_reg_images() == truth.num_images()
+    assert rig_consistency(model, model_rig_frames(truth))["rotation_max_deg"] < 1e-6
+    names = sorted(image.name for image in truth.images.values())
+    centres = [np.array([reconstruction.find_image_with_name(name).projection_center()
+                         for name in names]) for reconstruction in (model, truth)]
+    assert fit_similarity(*centres).scale == pytest.approx(1.0, abs=0.01)
+    report = evaluate.evaluate(model, GroundTruth(
+        {image.name: image.cam_from_world() for image in truth.images.values()}, {}))
+    assert report["R_err_max_deg"] < 0.1
+
+
+def test_a_model_starts_from_one_frame_where_no_two_frames_share_verified_matches(
+        tmp_path: Path) -> None:
+    """Verified matches only within frames: no pair of two frames can start a model, one
+    frame's rig baseline can (the next frames registered through raw matches)."""
+    truth = wide_rig(tmp_path / "database.db", seed=0)
+    with pycolmap.Database.open(str(tmp_path / "database.db")) as db:
+        frame_of = {image.image_id: image.frame_id for image in db.read_all_images()}
+        pair_ids, _ = db.read_two_view_geometries()
+        for pair_id in pair_ids:
+            id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
+            if frame_of[id1] != frame_of[id2]:
+                db.delete_two_view_geometry(id1, id2)
+    (tmp_path / "images").mkdir()
+
+    mapper.run(tmp_path / "database.db", tmp_path / "images", tmp_path / "out",
+               mapper.MapperOptions(seed=0), progress=False)
+
+    assert_metric_and_near_the_truth(pycolmap.Reconstruction(tmp_path / "out" / "0"), truth)
+
+
+def test_initial_images_of_one_frame_start_the_model_from_that_frame(tmp_path: Path) -> None:
+    """--Mapper.init_image_id1/2 of one frame: the model starts from that frame, which
+    holds the gauge at the origin; a frame whose matches triangulate into fewer points
+    than --Mapper.init_min_num_inliers is a one-line error."""
+    truth = wide_rig(tmp_path / "database.db", seed=1)
+    frame = truth.frames[2]
+    id1, id2 = sorted(data_id.id for data_id in frame.image_ids)[:2]
+    (tmp_path / "images").mkdir()
+
+    def run(output: Path, min_num_inliers: int) -> None:
+        options = mapper.MapperOptions(seed=0)
+        options.initialization = dataclasses.replace(
+            options.initialization, image_id1=id1, image_id2=id2,
+            min_num_inliers=min_num_inliers)
+        mapper.run(tmp_path / "database.db", tmp_path / "images", output, options,
+                   progress=False)
+
+    run(tmp_path / "out", min_num_inliers=30)
+    model = pycolmap.Reconstruction(tmp_path / "out" / "0")
+    assert_metric_and_near_the_truth(model, truth)
+    np.testing.assert_allclose(model.frames[frame.frame_id].rig_from_world.matrix(),
+                               np.eye(4)[:3], atol=1e-12)
+    with pytest.raises(UserError, match=f"initial images {id1} and {id2} are of one frame"):
+        run(tmp_path / "few", min_num_inliers=10_000)

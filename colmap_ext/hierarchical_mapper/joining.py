@@ -13,6 +13,7 @@ from colmap_ext.geometry import (fit_similarity, mean_rotation, rotation_angles_
 from colmap_ext.hierarchical_mapper.clusters import ClusterModel
 from colmap_ext.hierarchical_mapper.options import HierarchicalOptions
 from colmap_ext.mapper.model import database_reconstruction
+from colmap_ext.mapper.triangulation import shared_observation_groups
 
 
 def similarity(target: ClusterModel, source: ClusterModel,
@@ -151,29 +152,3 @@ def join(db: DatabaseContents, models: list[ClusterModel],
             reconstruction.add_point3D(sums[owner_id] / members[owner_id],
                                        pycolmap.Track(elements[start:start + length]))
     return reconstruction
-
-
-def shared_observation_groups(point: np.ndarray, image: np.ndarray, keypoint: np.ndarray,
-                              num_points: int) -> np.ndarray:
-    """Per point id, the smallest id of its group: points that share an observation
-    (image, keypoint), directly or through other points. Observation k is keypoint
-    `keypoint[k]` of image `image[k]` seeing point `point[k]`. Minimum labels spread
-    along the links, with pointer jumping, until nothing changes."""
-    key = image.astype(np.int64) * (int(keypoint.max(initial=0)) + 1) + keypoint
-    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
-    other = point[first][inverse]
-    linked = point != other
-    a, b = point[linked], other[linked]
-    label = np.arange(num_points)
-    while True:
-        previous = label.copy()
-        low = np.minimum(label[a], label[b])
-        np.minimum.at(label, a, low)
-        np.minimum.at(label, b, low)
-        while True:
-            jumped = label[label]
-            if (jumped == label).all():
-                break
-            label = jumped
-        if (label == previous).all():
-            return label

@@ -1,11 +1,14 @@
 """The initial pair (paper, step 3): 5-point RANSAC for the relative pose, metric
 triangulation of the consensus set, guided matching for more (see pipeline). Two
 frames of a rig are related by the generalized relative pose of all their images'
-matches (OpenGV), whose translation the rig makes metric."""
+matches (OpenGV), whose translation the rig makes metric. One frame of a rig whose
+cameras have different centres is a stereo pair already: its images' matches
+triangulate with the rig's own relative poses (a frame start)."""
 
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from collections.abc import Iterable
 from dataclasses import dataclass
 
@@ -18,10 +21,13 @@ from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (InitializationOptions, TriangulationOptions,
                                        TwoViewOptions)
-from colmap_ext.mapper.two_view import Pair, relative_pose
+from colmap_ext.mapper.triangulation import shared_observation_groups, triangulate_points
+from colmap_ext.mapper.two_view import Pair, epipolar_inliers, relative_pose
 
-# Pairs evaluated when the mapper chooses: the ones with most verified matches.
+# Pairs evaluated when the mapper chooses: the ones with most verified matches; and
+# frames, those with most verified matches between their images.
 MAX_CANDIDATE_PAIRS = 40
+MAX_CANDIDATE_FRAMES = 40
 
 
 @dataclass
@@ -33,6 +39,15 @@ class TwoViewReconstruction:
     median_angle_deg: float
     # The frames' relative pose where one of them has several images (a rig's).
     rig2_from_rig1: pycolmap.Rigid3d | None = None
+
+
+@dataclass
+class FrameReconstruction:
+    """One frame of a rig, its images' matches triangulated with the rig's relative poses."""
+
+    image_id: int  # an image of the frame
+    tracks: list[dict[int, int]]  # each point's observations: image id -> keypoint
+    xyz: np.ndarray  # (n, 3) their points, in the rig's frame
 
 
 def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
@@ -62,17 +77,98 @@ def reconstruct_pair(model: Model, pair: Pair, matches: np.ndarray,
                                  float(np.median(angles)))
 
 
+def reconstruct_frame(model: Model, image_id: int, matches: dict[Pair, np.ndarray],
+                      two_view: TwoViewOptions,
+                      triangulation: TriangulationOptions) -> FrameReconstruction:
+    """The points of the frame of `image_id`, in its rig's frame: its tracks
+    (_frame_tracks) triangulated with the rig's poses and kept by the triangulation's
+    rule (triangulate_points)."""
+    image_ids = model.frame_images(image_id)
+    cams_from_rig = {i: model.cam_from_rig(i) for i in image_ids}
+    tracks = _frame_tracks(model, cams_from_rig, matches, two_view)
+    if not tracks:
+        return FrameReconstruction(image_id, [], np.zeros((0, 3)))
+    xyz, ok = triangulate_points(model, tracks, triangulation, cams_from_rig)
+    return FrameReconstruction(image_id, [track for track, keep in zip(tracks, ok) if keep],
+                               xyz[ok])
+
+
+def _frame_tracks(model: Model, cams_from_rig: dict[int, pycolmap.Rigid3d],
+                  matches: dict[Pair, np.ndarray],
+                  two_view: TwoViewOptions) -> list[dict[int, int]]:
+    """The tracks of one frame's images (image id -> its pose in the rig): the verified
+    matches between two of them at different centres that lie within
+    two_view.max_error_px of their epipolar lines under the rig's relative pose (the
+    5-point RANSAC's inlier test), joined where they share a keypoint; a track holding
+    two keypoints of one image is left out."""
+    images, keypoints = [], []  # of each consistent match's two observations, in turn
+    for id1, id2 in itertools.combinations(sorted(cams_from_rig), 2):
+        pair_matches = matches.get((id1, id2))
+        cam1_from_rig, cam2_from_rig = cams_from_rig[id1], cams_from_rig[id2]
+        if pair_matches is None or np.array_equal(cam1_from_rig.inverse().translation,
+                                                  cam2_from_rig.inverse().translation):
+            continue
+        consistent = pair_matches[epipolar_inliers(
+            model, (id1, id2), pair_matches, cam2_from_rig * cam1_from_rig.inverse(),
+            two_view.max_error_px)]
+        images.append(np.tile([id1, id2], len(consistent)))
+        keypoints.append(consistent.ravel())
+    if not images:
+        return []
+    images, keypoints = np.concatenate(images), np.concatenate(keypoints)
+    match_index = np.arange(len(images)) // 2
+    group = shared_observation_groups(match_index, images, keypoints, len(images) // 2)
+    tracks: dict[int, dict[int, int]] = {}
+    conflicting = set()
+    for label, image, keypoint in zip(group[match_index].tolist(), images.tolist(),
+                                      keypoints.tolist()):
+        if tracks.setdefault(label, {}).setdefault(image, keypoint) != keypoint:
+            conflicting.add(label)
+    return [track for label, track in tracks.items() if label not in conflicting]
+
+
 def choose_initial_pair(model: Model, matches: dict[Pair, np.ndarray],
                         initialization: InitializationOptions, two_view: TwoViewOptions,
                         triangulation: TriangulationOptions, excluded: set[Pair],
-                        seed: int | None) -> TwoViewReconstruction | None:
-    """The requested pair, or the best-conditioned among the pairs with most matches:
+                        seed: int | None
+                        ) -> TwoViewReconstruction | FrameReconstruction | None:
+    """The requested pair, or the mapper's choice: the best pair (best_pair), unless the
+    frame of a rig whose images' matches triangulate into most points (reconstruct_frame)
+    gives more, and at least initialization.min_num_inliers. A pair that fails joins
+    `excluded`. `seed`: the RANSAC's (None: unseeded)."""
+    if initialization.image_id1 >= 0 or initialization.image_id2 >= 0:
+        return _requested_pair(model, matches, initialization, two_view, triangulation, seed)
+    pair = best_pair(model, matches, initialization, two_view, triangulation, excluded, seed)
+    frames = [reconstruct_frame(model, image_ids[0], matches, two_view, triangulation)
+              for image_ids in _candidate_frames(model, matches)]
+    frame = max(frames, key=lambda frame: len(frame.tracks), default=None)
+    if frame is None or len(frame.tracks) < initialization.min_num_inliers:
+        return pair
+    return frame if pair is None or len(frame.tracks) > len(pair.matches) else pair
+
+
+def _candidate_frames(model: Model, matches: dict[Pair, np.ndarray]) -> list[list[int]]:
+    """The images of the model's frames with most verified matches between their images
+    (at most MAX_CANDIDATE_FRAMES frames, each with some)."""
+    frame_of = {image_id: model.frame_id(image_id) for image_id in model.image_ids}
+    within: dict[int, int] = {}  # frame id -> verified matches between its images
+    for (id1, id2), pair_matches in matches.items():
+        if frame_of[id1] == frame_of[id2]:
+            within[frame_of[id1]] = within.get(frame_of[id1], 0) + len(pair_matches)
+    best = sorted(within, key=lambda frame_id: -within[frame_id])[:MAX_CANDIDATE_FRAMES]
+    return [[image_id for image_id in model.image_ids if frame_of[image_id] == frame_id]
+            for frame_id in best]
+
+
+def best_pair(model: Model, matches: dict[Pair, np.ndarray],
+              initialization: InitializationOptions, two_view: TwoViewOptions,
+              triangulation: TriangulationOptions, excluded: set[Pair],
+              seed: int | None) -> TwoViewReconstruction | None:
+    """The best-conditioned among the pairs of images of two frames with most matches:
     most well-triangulated points among those whose median triangulation angle reaches
     initialization.min_tri_angle_deg. As COLMAP relaxes its initialization, the angle
     halves while no pair reaches it, down to triangulation.min_tri_angle_deg. A pair
     that fails joins `excluded`. `seed`: the RANSAC's (None: unseeded)."""
-    if initialization.image_id1 >= 0 or initialization.image_id2 >= 0:
-        return _requested_pair(model, matches, initialization, two_view, triangulation, seed)
     candidates = sorted((pair for pair, m in matches.items()
                          if len(m) >= initialization.min_num_inliers and pair not in excluded
                          and model.frame_id(pair[0]) != model.frame_id(pair[1])),
@@ -105,14 +201,22 @@ def check_requested_pair(image_ids: Iterable[int], initialization: Initializatio
 
 def _requested_pair(model: Model, matches: dict[Pair, np.ndarray],
                     initialization: InitializationOptions, two_view: TwoViewOptions,
-                    triangulation: TriangulationOptions, seed: int | None) -> TwoViewReconstruction:
+                    triangulation: TriangulationOptions, seed: int | None
+                    ) -> TwoViewReconstruction | FrameReconstruction:
+    """The requested pair; two images of one frame of a rig request a frame start."""
     id1, id2 = initialization.image_id1, initialization.image_id2
     check_requested_pair(model.db.images, initialization)
     key = (min(id1, id2), max(id1, id2))
     if key not in matches:
         raise UserError(f"initial images {id1} and {id2} have no verified matches")
     if model.frame_id(id1) == model.frame_id(id2):
-        raise UserError(f"initial images {id1} and {id2} are of the same frame of a rig")
+        frame = reconstruct_frame(model, id1, matches, two_view, triangulation)
+        if len(frame.tracks) < initialization.min_num_inliers:
+            raise UserError(f"initial images {id1} and {id2} are of one frame of a rig, whose "
+                            f"cameras' matches give {len(frame.tracks)} well-triangulated "
+                            f"points with the rig's baseline (fewer than "
+                            f"--Mapper.init_min_num_inliers {initialization.min_num_inliers})")
+        return frame
     requested = _reconstruct_frames(model, key, matches, initialization, two_view,
                                     triangulation, seed)
     if requested is None:
@@ -169,17 +273,29 @@ def with_frames(model: Model, reconstructed: TwoViewReconstruction,
     return dataclasses.replace(reconstructed, rig2_from_rig1=result.rig2_from_rig1)
 
 
-def initialize(model: Model, two_view: TwoViewReconstruction) -> None:
+def initialize(model: Model, start: TwoViewReconstruction | FrameReconstruction) -> list[int]:
     """Register the pair (camera 1 at the origin, unit baseline) and add its points; a
-    rig's frames (frame 1 at the origin, the rig's metric baseline) without points: the
-    pipeline triangulates all their images."""
-    id1, id2 = two_view.pair
-    if two_view.rig2_from_rig1 is not None:
+    rig's frames (frame 1 at the origin, the rig's metric baseline) without points; a
+    frame start (the frame at the origin) with its points. Returns the images the
+    pipeline triangulates next against every registered one."""
+    if isinstance(start, FrameReconstruction):
+        model.register_frame(start.image_id, pycolmap.Rigid3d())
+        _add_points(model, start.tracks, start.xyz)
+        return model.frame_images(start.image_id)
+    id1, id2 = start.pair
+    if start.rig2_from_rig1 is not None:
         model.register_frame(id1, pycolmap.Rigid3d())
-        model.register_frame(id2, two_view.rig2_from_rig1)
-        return
-    model.register(id1, pycolmap.Rigid3d())
-    model.register(id2, two_view.cam2_from_cam1)
-    for (kp1, kp2), xyz in zip(two_view.matches.tolist(), two_view.xyz):
-        if model.point_of[id1][kp1] < 0 and model.point_of[id2][kp2] < 0:
-            model.add_point(xyz, {id1: kp1, id2: kp2})
+        model.register_frame(id2, start.rig2_from_rig1)
+    else:
+        model.register(id1, pycolmap.Rigid3d())
+        model.register(id2, start.cam2_from_cam1)
+        _add_points(model, [{id1: kp1, id2: kp2} for kp1, kp2 in start.matches.tolist()],
+                    start.xyz)
+    return model.frame_images(id2)
+
+
+def _add_points(model: Model, tracks: list[dict[int, int]], xyz: np.ndarray) -> None:
+    """Add the points whose keypoints observe none yet (a keypoint joins one point)."""
+    for track, point in zip(tracks, xyz):
+        if all(model.point_of[image_id][kp] < 0 for image_id, kp in track.items()):
+            model.add_point(point, track)

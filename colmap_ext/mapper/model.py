@@ -289,13 +289,15 @@ class Model:
         return kps, self.point_of[image_id][kps]
 
     # --- geometry ---------------------------------------------------------------
-    def reprojection_errors(self, image_id: int, kps: np.ndarray, xyz: np.ndarray) -> np.ndarray:
+    def reprojection_errors(self, image_id: int, kps: np.ndarray, xyz: np.ndarray,
+                            cam_from_world: pycolmap.Rigid3d | None = None) -> np.ndarray:
         """Reprojection errors in pixels: the angle between each keypoint's ray and its
         point `xyz`, over the angle a pixel spans there. inf where the point is 90 degrees
         or more from the ray (behind it), or where the camera model cannot project the
         point (a fisheye's directions at 90 degrees or more from its axis): bundle
-        adjustment could not take such an observation."""
-        pose = self.pose(image_id).matrix()
+        adjustment could not take such an observation. `cam_from_world`: the image's pose
+        (default: its registered one)."""
+        pose = (self.pose(image_id) if cam_from_world is None else cam_from_world).matrix()
         x_cam = xyz @ pose[:, :3].T + pose[:, 3]
         ray = self.rays[image_id][kps]
         along = np.einsum("ij,ij->i", x_cam, ray)

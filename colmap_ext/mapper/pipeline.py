@@ -106,12 +106,12 @@ class IncrementalMapper:
                                           excluded_pairs, options.seed)
         if initial is None:
             return False
-        initialize(self.model, initial)
+        new_images = initialize(self.model, initial)
         with self.timer("triangulation"):
-            # Every image of the second frame against every image of both frames (a
-            # rig's other cameras see across its baseline too).
+            # Every image of the second frame (of the frame start) against every
+            # registered image (a rig's other cameras see across its baseline too).
             registered = self.model.registered
-            for image_id in self.model.frame_images(initial.pair[1]):
+            for image_id in new_images:
                 triangulate_image(self.model, image_id,
                                   [other for other in registered if other != image_id],
                                   options.guided_matching, options.triangulation, min_views=2)

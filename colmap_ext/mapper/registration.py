@@ -10,10 +10,9 @@ import numpy as np
 import pycolmap
 
 import solvers
-from colmap_ext.geometry import sampson_angles
-from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import GuidedMatchingOptions, RegistrationOptions
+from colmap_ext.mapper.two_view import epipolar_inliers
 
 
 class Outcome(enum.Enum):
@@ -160,11 +159,8 @@ def epipolar_support(model: Model, cams_from_world: dict[int, pycolmap.Rigid3d],
         for other_id, matches in graph.get(image_id, {}).items():
             if not model.is_registered(other_id):
                 continue
-            E = pycolmap.essential_matrix_from_pose(model.pose(other_id) * cam_from_world.inverse())
-            errors = sampson_angles(E, model.rays[image_id][matches[:, 0]],
-                                    model.rays[other_id][matches[:, 1]])
-            max_errors = max_error_px * pair_pixel_angles(model, image_id, matches[:, 0],
-                                                          other_id, matches[:, 1])
-            consistent += int(np.count_nonzero(errors <= max_errors))
+            consistent += int(np.count_nonzero(epipolar_inliers(
+                model, (image_id, other_id), matches,
+                model.pose(other_id) * cam_from_world.inverse(), max_error_px)))
             total += len(matches)
     return consistent / total if total else 1.0

@@ -4,6 +4,7 @@ an existing point's track or, seen in enough images, become a new point."""
 from __future__ import annotations
 
 import numpy as np
+import pycolmap
 
 import solvers
 from colmap_ext.mapper.guided_matching import compatible_features
@@ -73,8 +74,7 @@ def _create_points(model: Model, image_id: int, candidates: dict[int, list[tuple
             tracks.append(track)
     if not tracks:
         return 0
-    xyz, valid = triangulate_tracks(model, tracks, triangulation.min_tri_angle_deg)
-    ok = valid & _reprojection_ok(model, tracks, xyz, triangulation.max_reproj_error_px)
+    xyz, ok = triangulate_points(model, tracks, triangulation)
     created = 0
     for track, point, keep in zip(tracks, xyz, ok):
         if keep and all(model.point_of[i][kp] < 0 for i, kp in track.items()):
@@ -83,10 +83,25 @@ def _create_points(model: Model, image_id: int, candidates: dict[int, list[tuple
     return created
 
 
-def triangulate_tracks(model: Model, tracks: list[dict[int, int]],
-                       min_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """Linear multi-view triangulation of tracks over registered images; valid where
-    some two rays meet at `min_angle_deg` or more."""
+def triangulate_points(model: Model, tracks: list[dict[int, int]],
+                       triangulation: TriangulationOptions,
+                       cams_from_world: dict[int, pycolmap.Rigid3d] | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """The points of tracks (triangulate_tracks), and whether each is kept: some two of
+    its rays meet at triangulation.min_tri_angle_deg or more, and every observation
+    reprojects within triangulation.max_reproj_error_px. `cams_from_world`: the images'
+    poses (default: their registered ones)."""
+    xyz, valid = triangulate_tracks(model, tracks, triangulation.min_tri_angle_deg,
+                                    cams_from_world)
+    return xyz, valid & _reprojection_ok(model, tracks, xyz, triangulation.max_reproj_error_px,
+                                         cams_from_world)
+
+
+def triangulate_tracks(model: Model, tracks: list[dict[int, int]], min_angle_deg: float,
+                       cams_from_world: dict[int, pycolmap.Rigid3d] | None = None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Linear multi-view triangulation of tracks over registered images (or over the
+    poses `cams_from_world`); valid where some two rays meet at `min_angle_deg` or more."""
     image_ids = sorted({i for track in tracks for i in track})
     view_of = {image_id: v for v, image_id in enumerate(image_ids)}
     views, points, rays = [], [], []
@@ -95,14 +110,17 @@ def triangulate_tracks(model: Model, tracks: list[dict[int, int]],
             views.append(view_of[image_id])
             points.append(p)
             rays.append(model.rays[image_id][kp])
-    return solvers.triangulate_tracks([model.pose(i) for i in image_ids], np.array(views),
+    poses = [model.pose(i) if cams_from_world is None else cams_from_world[i] for i in image_ids]
+    return solvers.triangulate_tracks(poses, np.array(views),
                                       np.array(points), np.array(rays), num_points=len(tracks),
                                       min_angle_deg=min_angle_deg)
 
 
 def _reprojection_ok(model: Model, tracks: list[dict[int, int]], xyz: np.ndarray,
-                     max_error_px: float) -> np.ndarray:
-    """Whether every observation of each track reprojects within `max_error_px`."""
+                     max_error_px: float,
+                     cams_from_world: dict[int, pycolmap.Rigid3d] | None) -> np.ndarray:
+    """Whether every observation of each track reprojects within `max_error_px` (poses:
+    `cams_from_world`, or the registered ones)."""
     ok = np.isfinite(xyz).all(axis=1)
     by_image: dict[int, tuple[list[int], list[int]]] = {}
     for p, track in enumerate(tracks):
@@ -112,7 +130,34 @@ def _reprojection_ok(model: Model, tracks: list[dict[int, int]], xyz: np.ndarray
             by_image[image_id][1].append(kp)
     for image_id, (ps, kps) in by_image.items():
         ps = np.array(ps)
-        errors = model.reprojection_errors(image_id, np.array(kps), np.nan_to_num(xyz[ps]))
+        pose = None if cams_from_world is None else cams_from_world[image_id]
+        errors = model.reprojection_errors(image_id, np.array(kps), np.nan_to_num(xyz[ps]), pose)
         bad = ps[errors > max_error_px]
         ok[bad] = False
     return ok
+
+
+def shared_observation_groups(point: np.ndarray, image: np.ndarray, keypoint: np.ndarray,
+                              num_points: int) -> np.ndarray:
+    """Per point id, the smallest id of its group: points that share an observation
+    (image, keypoint), directly or through other points. Observation k is keypoint
+    `keypoint[k]` of image `image[k]` seeing point `point[k]`. Minimum labels spread
+    along the links, with pointer jumping, until nothing changes."""
+    key = image.astype(np.int64) * (int(keypoint.max(initial=0)) + 1) + keypoint
+    _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+    other = point[first][inverse]
+    linked = point != other
+    a, b = point[linked], other[linked]
+    label = np.arange(num_points)
+    while True:
+        previous = label.copy()
+        low = np.minimum(label[a], label[b])
+        np.minimum.at(label, a, low)
+        np.minimum.at(label, b, low)
+        while True:
+            jumped = label[label]
+            if (jumped == label).all():
+                break
+            label = jumped
+        if (label == previous).all():
+            return label

@@ -30,13 +30,17 @@ def write_pycolmap_dataset(database_path: str | Path, camera_model: str | None, 
                            num_images: int = 30, noise_px: float = 0.5,
                            num_points: int = 100, num_cameras: int = 1,
                            params: list[float] | None = None,
-                           num_rigs: int = 1) -> pycolmap.Reconstruction:
+                           num_rigs: int = 1,
+                           rig_baseline: float | None = None) -> pycolmap.Reconstruction:
     """Write a new database of `num_images` images (frames of `num_rigs` rigs of
     `num_cameras` cameras of `camera_model`; None: the generator's own camera) with
-    keypoint noise, and return its ground truth."""
+    keypoint noise, and return its ground truth. `rig_baseline`: the standard deviation
+    of the cameras' offsets on their rig (None: the generator's, 0.05)."""
     pycolmap.set_random_seed(seed)
     options = pycolmap.SyntheticDatasetOptions()
     options.num_rigs = num_rigs
+    if rig_baseline is not None:
+        options.sensor_from_rig_translation_stddev = rig_baseline
     options.num_cameras_per_rig = num_cameras
     options.num_frames_per_rig = num_images // (num_rigs * num_cameras)
     options.num_points3D = num_points
