@@ -101,12 +101,16 @@ def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
     rng = np.random.default_rng(2)
     features = {i: random_sift(rng, 100) for i in range(4)}
     one_pair = 100 * 3 * (4 + 4)  # int32 indices and float32 angles
-    store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2 * one_pair, num_threads=2)
+    store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2 * one_pair,
+                               num_threads=2)
     store.prefetch(0, [1, 2, 3])
-    assert list(store._pairs) == [(0, 2), (0, 3)]
-    assert store._bytes == 2 * one_pair
+    assert list(store.pairs.items) == [(0, 2), (0, 3)]
+    assert store.pairs.bytes == 2 * one_pair
     store(0, 1)  # searched again, then kept as the newest
-    assert list(store._pairs) == [(0, 3), (0, 1)]
+    assert list(store.pairs.items) == [(0, 3), (0, 1)]
+    # Unit descriptors (100 x 128 float32 an image) beyond the memory: the newest alone.
+    assert list(store.units.items) == [1] and store.units.bytes == 100 * 128 * 4
+    store.close()
 
 
 def test_pairs_beyond_the_search_budget_take_the_database_matches() -> None:
