@@ -18,7 +18,7 @@ from colmap_ext.database import DescriptorReader, read_database
 from colmap_ext.mapper import MapperOptions, descriptors
 from colmap_ext.mapper.descriptors import NearestDescriptors, nearest_descriptors, unit_descriptors
 from colmap_ext.mapper.guided_matching import compatible_features
-from colmap_ext.mapper.model import Model
+from colmap_ext.mapper.model import Model, cross_norms
 from colmap_ext.mapper.filtering import has_triangulation_angle
 from colmap_ext.mapper.registration import epipolar_support
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
@@ -77,6 +77,15 @@ def test_largest_per_row_ranks_as_a_stable_sort(num_columns: int) -> None:
     assert (sub_index == expected_sub_index).all() and (sub_best == expected_sub_best).all()
     none = solvers.largest_per_row(values, 0)
     assert [array.shape for array in none] == [(40, 0)] * 4
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_cross_norms_are_numpys_to_the_last_bit(dtype) -> None:
+    """Reprojection errors decide on thresholds: the quicker cross product must not move them."""
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(1000, 3)) * 10.0 ** rng.integers(-6, 6, (1000, 1))
+    b = rng.normal(size=(1000, 3)).astype(dtype)
+    assert np.array_equal(cross_norms(a, b), np.linalg.norm(np.cross(a, b), axis=1))
 
 
 @pytest.mark.parametrize("num_threads", [1, 2])
