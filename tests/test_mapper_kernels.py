@@ -77,6 +77,9 @@ def test_largest_per_row_ranks_as_a_stable_sort(num_columns: int) -> None:
     assert (sub_index == expected_sub_index).all() and (sub_best == expected_sub_best).all()
     none = solvers.largest_per_row(values, 0)
     assert [array.shape for array in none] == [(40, 0)] * 4
+    _, _, sub_index, sub_best = solvers.largest_per_row(values, 1, subset=np.zeros(0, np.int64),
+                                                        k_subset=2)  # an empty subset
+    assert (sub_index == 0).all() and np.isneginf(sub_best).all() and sub_best.shape == (40, 2)
 
 
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
@@ -119,6 +122,9 @@ def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
     assert list(store.pairs.items) == [(0, 3), (0, 1)]
     # Unit descriptors (100 x 128 float32 an image) beyond the memory: the newest alone.
     assert list(store.units.items) == [1] and store.units.bytes == 100 * 128 * 4
+    store.close()  # its threads stop; a later search starts them again
+    store.prefetch(1, [0, 2])
+    assert list(store.pairs.items) == [(1, 0), (1, 2)]
     store.close()
 
 
