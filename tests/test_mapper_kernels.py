@@ -18,7 +18,7 @@ from colmap_ext.database import DescriptorReader, read_database
 from colmap_ext.mapper import MapperOptions, descriptors
 from colmap_ext.mapper.descriptors import NearestDescriptors, nearest_descriptors, unit_descriptors
 from colmap_ext.mapper.guided_matching import compatible_features
-from colmap_ext.mapper.model import Model
+from colmap_ext.mapper.model import Model, cross_norms
 from colmap_ext.mapper.filtering import has_triangulation_angle
 from colmap_ext.mapper.registration import epipolar_support
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
@@ -77,6 +77,18 @@ def test_largest_per_row_ranks_as_a_stable_sort(num_columns: int) -> None:
     assert (sub_index == expected_sub_index).all() and (sub_best == expected_sub_best).all()
     none = solvers.largest_per_row(values, 0)
     assert [array.shape for array in none] == [(40, 0)] * 4
+    _, _, sub_index, sub_best = solvers.largest_per_row(values, 1, subset=np.zeros(0, np.int64),
+                                                        k_subset=2)  # an empty subset
+    assert (sub_index == 0).all() and np.isneginf(sub_best).all() and sub_best.shape == (40, 2)
+
+
+@pytest.mark.parametrize("dtype", [np.float64, np.float32])
+def test_cross_norms_are_numpys_to_the_last_bit(dtype) -> None:
+    """Reprojection errors decide on thresholds: the quicker cross product must not move them."""
+    rng = np.random.default_rng(4)
+    a = rng.normal(size=(1000, 3)) * 10.0 ** rng.integers(-6, 6, (1000, 1))
+    b = rng.normal(size=(1000, 3)).astype(dtype)
+    assert np.array_equal(cross_norms(a, b), np.linalg.norm(np.cross(a, b), axis=1))
 
 
 @pytest.mark.parametrize("num_threads", [1, 2])
@@ -101,12 +113,19 @@ def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
     rng = np.random.default_rng(2)
     features = {i: random_sift(rng, 100) for i in range(4)}
     one_pair = 100 * 3 * (4 + 4)  # int32 indices and float32 angles
-    store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2 * one_pair, num_threads=2)
+    store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2 * one_pair,
+                               num_threads=2)
     store.prefetch(0, [1, 2, 3])
-    assert list(store._pairs) == [(0, 2), (0, 3)]
-    assert store._bytes == 2 * one_pair
+    assert list(store.pairs.items) == [(0, 2), (0, 3)]
+    assert store.pairs.bytes == 2 * one_pair
     store(0, 1)  # searched again, then kept as the newest
-    assert list(store._pairs) == [(0, 3), (0, 1)]
+    assert list(store.pairs.items) == [(0, 3), (0, 1)]
+    # Unit descriptors (100 x 128 float32 an image) beyond the memory: the newest alone.
+    assert list(store.units.items) == [1] and store.units.bytes == 100 * 128 * 4
+    store.close()  # its threads stop; a later search starts them again
+    store.prefetch(1, [0, 2])
+    assert list(store.pairs.items) == [(1, 0), (1, 2)]
+    store.close()
 
 
 def test_pairs_beyond_the_search_budget_take_the_database_matches() -> None:

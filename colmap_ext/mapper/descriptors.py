@@ -6,7 +6,7 @@ compare too many keypoint pairs, the database's matches stand in for it."""
 from __future__ import annotations
 
 from collections import OrderedDict
-from collections.abc import Iterator, Mapping
+from collections.abc import Hashable, Iterator, Mapping
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -28,14 +28,14 @@ def unit_descriptors(descriptors: np.ndarray) -> np.ndarray:
     return d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
 
 
-def _similarity_blocks(queries: np.ndarray,
-                       database: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
-    """(first row, cosines of a block of queries against the whole database): blocks of
-    about QUERY_BLOCK_ENTRIES, so memory stays bounded whatever the keypoint counts."""
-    database = unit_descriptors(database)
-    block = max(1, QUERY_BLOCK_ENTRIES // max(len(database), 1))
-    for start in range(0, len(queries), block):
-        yield start, unit_descriptors(queries[start:start + block]) @ database.T
+def _similarity_blocks(unit_queries: np.ndarray,
+                       unit_database: np.ndarray) -> Iterator[tuple[int, np.ndarray]]:
+    """(first row, cosines of a block of queries against the whole database), from unit
+    descriptors: blocks of about QUERY_BLOCK_ENTRIES, so memory stays bounded whatever
+    the keypoint counts."""
+    block = max(1, QUERY_BLOCK_ENTRIES // max(len(unit_database), 1))
+    for start in range(0, len(unit_queries), block):
+        yield start, unit_queries[start:start + block] @ unit_database.T
 
 
 def _angles(cosines: np.ndarray) -> np.ndarray:
@@ -48,26 +48,62 @@ def nearest_descriptors(queries: np.ndarray, database: np.ndarray, k: int,
     """Indices (q, k) of the k nearest descriptors (uint8 SIFT), nearest first, and
     their angles (radians); from the same cosines, the k_subset nearest among the
     database rows `subset` (indices into it, angles)."""
-    k, k_subset = min(k, len(database)), min(k_subset, 0 if subset is None else len(subset))
-    index = np.empty((len(queries), k), np.int32)
-    best = np.empty((len(queries), k), np.float32)
-    sub_index = np.empty((len(queries), k_subset), np.int64)
-    sub_best = np.empty((len(queries), k_subset), np.float32)
-    for start, similarity in _similarity_blocks(queries, database):
+    return nearest_unit_descriptors(unit_descriptors(queries), unit_descriptors(database), k,
+                                    subset, k_subset)
+
+
+def nearest_unit_descriptors(unit_queries: np.ndarray, unit_database: np.ndarray, k: int,
+                             subset: np.ndarray | None = None, k_subset: int = 0,
+                             ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """nearest_descriptors from the descriptors' unit_descriptors."""
+    k = min(k, len(unit_database))
+    k_subset = min(k_subset, 0 if subset is None else len(subset))
+    index = np.empty((len(unit_queries), k), np.int32)
+    best = np.empty((len(unit_queries), k), np.float32)
+    sub_index = np.empty((len(unit_queries), k_subset), np.int64)
+    sub_best = np.empty((len(unit_queries), k_subset), np.float32)
+    for start, similarity in _similarity_blocks(unit_queries, unit_database):
         rows = slice(start, start + len(similarity))
         index[rows], best[rows], sub_index[rows], sub_best[rows] = solvers.largest_per_row(
             similarity, k, subset=subset, k_subset=k_subset)
     return index, _angles(best), (sub_index, _angles(sub_best))
 
 
+class LeastRecentlyUsed:
+    """Arrays by key within `max_bytes`, the least recently used given up first (the
+    newest always kept)."""
+
+    def __init__(self, max_bytes: int) -> None:
+        self.max_bytes = max_bytes
+        self.items: OrderedDict[Hashable, tuple[np.ndarray, ...]] = OrderedDict()
+        self.bytes = 0
+
+    def __contains__(self, key: Hashable) -> bool:
+        return key in self.items
+
+    def get(self, key: Hashable) -> tuple[np.ndarray, ...]:
+        """The arrays kept under `key`, now the most recently used."""
+        self.items.move_to_end(key)
+        return self.items[key]
+
+    def keep(self, key: Hashable, arrays: tuple[np.ndarray, ...]) -> None:
+        self.items[key] = arrays
+        self.bytes += sum(array.nbytes for array in arrays)
+        while self.bytes > self.max_bytes and len(self.items) > 1:
+            _, old = self.items.popitem(last=False)
+            self.bytes -= sum(array.nbytes for array in old)
+
+
 class NearestDescriptors:
     """For every keypoint of an image, its k nearest descriptors in another image: the
     guided matching's candidates (paper, step 4c). Descriptors never change, so each
     ordered pair of images is searched once and kept, the least recently used pairs
-    given up first beyond `max_bytes`. A registration's search against a neighbour's
-    observed keypoints comes from the same cosines (`search_subsets`). Every search runs
-    with single-threaded BLAS, searches against several images in parallel, one per
-    thread: on a loaded machine that is about twice as fast as BLAS's own threads.
+    given up first beyond `max_bytes`; so are the images' unit descriptors, which the
+    searches of an image's pairs share (another `max_bytes` at most). A registration's
+    search against a neighbour's observed keypoints comes from the same cosines
+    (`search_subsets`). Every search runs with single-threaded BLAS, searches against
+    several images in parallel, one per thread of a pool kept until `close`: on a
+    loaded machine that is about twice as fast as BLAS's own threads.
 
     A pair whose exact search would compare more than `max_search_pairs` keypoint pairs
     (the cost grows with the product of the keypoint counts) takes its candidates from
@@ -83,12 +119,18 @@ class NearestDescriptors:
         self.descriptors = descriptors  # read when a search needs them (DescriptorReader)
         self.num_keypoints = num_keypoints
         self.k = k
-        self.max_bytes = max_bytes
         self.num_threads = max(1, num_threads)
         self.matches = matches or {}
         self.max_search_pairs = max_search_pairs
-        self._pairs: OrderedDict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
-        self._bytes = 0
+        self.pairs = LeastRecentlyUsed(max_bytes)  # (image, other image) -> (index, angles)
+        self.units = LeastRecentlyUsed(max_bytes)  # image -> (its unit descriptors,)
+        self._pool: ThreadPoolExecutor | None = None
+
+    def close(self) -> None:
+        """Stop the search threads (a later search starts them again)."""
+        if self._pool is not None:
+            self._pool.shutdown()
+            self._pool = None
 
     def __call__(self, image_id: int, other_id: int) -> tuple[np.ndarray, np.ndarray]:
         """(index, angles), each (keypoints of image_id, k), nearest first; one column
@@ -97,13 +139,12 @@ class NearestDescriptors:
             index, angles, _ = self._matched(image_id, other_id, np.zeros(0, np.int64), 0)
             return index, angles
         self.prefetch(image_id, [other_id])
-        self._pairs.move_to_end((image_id, other_id))
-        return self._pairs[(image_id, other_id)]
+        return self.pairs.get((image_id, other_id))
 
     def prefetch(self, image_id: int, other_ids: list[int]) -> None:
         """Search the pairs (image_id, other) not kept yet, in parallel."""
         missing = [(other_id, np.zeros(0, np.int64)) for other_id in other_ids
-                   if (image_id, other_id) not in self._pairs
+                   if (image_id, other_id) not in self.pairs
                    and not self._uses_matches(image_id, other_id)]
         self.search_subsets(image_id, missing, 0)
 
@@ -112,27 +153,33 @@ class NearestDescriptors:
         """For each (other image, keypoints of it), the k nearest among those keypoints
         (indices into them, angles), keeping each search over all of them."""
         def search(other_id: int, subset: np.ndarray):
-            return self._search(image_id, other_id, subset, k)
+            if self._uses_matches(image_id, other_id):
+                return self._matched(image_id, other_id, subset, k)
+            return nearest_unit_descriptors(units[image_id], units[other_id], self.k, subset, k)
 
         if not subsets:
             return []
+        # Unit descriptors read and kept here: the threads only search.
+        searched = [other_id for other_id, _ in subsets
+                    if not self._uses_matches(image_id, other_id)]
+        units = {i: self._unit(i) for i in ([image_id] + searched if searched else [])}
         with BLAS.limit(limits=1, user_api="blas"):
             if len(subsets) > 1 and self.num_threads > 1:
-                with ThreadPoolExecutor(min(self.num_threads, len(subsets))) as pool:
-                    results = list(pool.map(search, *zip(*subsets)))
+                if self._pool is None:
+                    self._pool = ThreadPoolExecutor(self.num_threads)
+                results = list(self._pool.map(search, *zip(*subsets)))
             else:
                 results = [search(other_id, subset) for other_id, subset in subsets]
         for (other_id, _), (index, angles, _) in zip(subsets, results):
             if not self._uses_matches(image_id, other_id):
-                self._keep((image_id, other_id), index, angles)
+                self.pairs.keep((image_id, other_id), (index, angles))
         return [found for _, _, found in results]
 
-    def _search(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
-        """(index, angles) over all of `other_id`, and the k nearest within `subset`."""
-        if self._uses_matches(image_id, other_id):
-            return self._matched(image_id, other_id, subset, k)
-        return nearest_descriptors(self.descriptors[image_id], self.descriptors[other_id],
-                                   self.k, subset, k)
+    def _unit(self, image_id: int) -> np.ndarray:
+        """The image's unit_descriptors, kept for its other pairs."""
+        if image_id not in self.units:
+            self.units.keep(image_id, (unit_descriptors(self.descriptors[image_id]),))
+        return self.units.get(image_id)[0]
 
     def _uses_matches(self, image_id: int, other_id: int) -> bool:
         """Whether the pair's exact search would compare more than max_search_pairs."""
@@ -140,7 +187,7 @@ class NearestDescriptors:
             self.num_keypoints[other_id] > self.max_search_pairs
 
     def _matched(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
-        """As `_search`, from the database's matches of the pair: each matched keypoint's
+        """As a search, from the database's matches of the pair: each matched keypoint's
         one candidate, in a single column (index 0 at an infinite angle for the others);
         within `subset`, the same in the first of k columns."""
         if (image_id, other_id) in self.matches:
@@ -168,10 +215,3 @@ class NearestDescriptors:
         sub_index, sub_angles = candidates(in_subset, position[other_kps[in_subset]],
                                            min(k, len(subset)))
         return index, angles, (sub_index, sub_angles)
-
-    def _keep(self, pair: tuple[int, int], index: np.ndarray, angles: np.ndarray) -> None:
-        self._pairs[pair] = (index, angles)
-        self._bytes += index.nbytes + angles.nbytes
-        while self._bytes > self.max_bytes and len(self._pairs) > 1:
-            _, (old_index, old_angles) = self._pairs.popitem(last=False)
-            self._bytes -= old_index.nbytes + old_angles.nbytes

@@ -28,14 +28,18 @@ def filter_points(model: Model, image_ids: list[int], filtering: FilteringOption
     poses under the robust loss; which of them a model holds depends on its run's RANSAC
     draws, and its poses did too.
     Returns (observations removed, points removed)."""
-    limit = error_limit(filtering.max_reproj_error_px, median_reprojection_error(model, image_ids),
+    observed = [(image_id, *_observation_errors(model, image_id)) for image_id in image_ids]
+    all_errors = np.concatenate([errors for *_, errors in observed]) if observed else []
+    limit = error_limit(filtering.max_reproj_error_px,
+                        float(np.median(all_errors)) if len(all_errors) else np.inf,
                         filtering.noise_max_error_ratio, max_error_ratio)
     removed_observations = 0
     touched: set[int] = set()
-    for image_id in image_ids:  # read afresh: a deletion may take a point of a later image
-        kps, point_ids = model.observations(image_id)
+    for image_id, kps, point_ids, errors in observed:
+        # Read afresh where a deletion took a point of this image (of a two-image track).
+        if (model.point_of[image_id][kps] != point_ids).any():
+            kps, point_ids, errors = _observation_errors(model, image_id)
         touched.update(point_ids.tolist())
-        errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
         for kp in kps[errors > limit].tolist():
             model.delete_observation(image_id, kp)
             removed_observations += 1
@@ -63,12 +67,6 @@ def error_limit(max_error_px: float, median_error_px: float, noise_max_error_rat
     return limit
 
 
-def median_reprojection_error(model: Model, image_ids: list[int]) -> float:
-    """The median reprojection error (px) of the observations in `image_ids`; inf if none."""
-    errors = reprojection_errors(model, image_ids)
-    return float(np.median(errors)) if len(errors) else np.inf
-
-
 def errors_look_gaussian(errors: np.ndarray, filtering: FilteringOptions) -> bool:
     """Whether reprojection errors look like Gaussian keypoint noise alone: at most
     FilteringOptions.gaussian_max_outlier_share of them beyond OUTLIER_ERROR_RATIO x their
@@ -82,9 +80,14 @@ def errors_look_gaussian(errors: np.ndarray, filtering: FilteringOptions) -> boo
 
 def reprojection_errors(model: Model, image_ids: list[int]) -> np.ndarray:
     """The reprojection errors (px) of every observation in `image_ids`."""
-    errors = [model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-              for image_id in image_ids for kps, point_ids in [model.observations(image_id)]]
+    errors = [_observation_errors(model, image_id)[2] for image_id in image_ids]
     return np.concatenate(errors) if errors else np.zeros(0)
+
+
+def _observation_errors(model: Model, image_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(keypoints, point ids, reprojection errors in px) of an image's observations."""
+    kps, point_ids = model.observations(image_id)
+    return kps, point_ids, model.reprojection_errors(image_id, kps, model.xyz[point_ids])
 
 
 def _supported(model: Model, point_id: int, track_length: int, wide_enough: bool,

@@ -301,7 +301,7 @@ class Model:
         x_cam = xyz @ pose[:, :3].T + pose[:, 3]
         ray = self.rays[image_id][kps]
         along = np.einsum("ij,ij->i", x_cam, ray)
-        angles = np.arctan2(np.linalg.norm(np.cross(x_cam, ray), axis=1), along)
+        angles = np.arctan2(cross_norms(x_cam, ray), along)
         errors = angles / self.pixel_angles[image_id][kps]
         errors[~(along > 0) | np.isnan(errors)] = np.inf
         if len(x_cam):
@@ -344,3 +344,12 @@ class Model:
         reconstruction.tear_down()
         reconstruction.update_point_3d_errors()
         return reconstruction
+
+
+def cross_norms(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.linalg.norm(np.cross(a, b), axis=1) of (n, 3) arrays: the same operations in the
+    same order, so the same values to the last bit, without np.cross's set-up per call."""
+    a0, a1, a2 = a.T
+    b0, b1, b2 = b.T
+    c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+    return np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)

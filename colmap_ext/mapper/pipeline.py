@@ -309,6 +309,7 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
     models = [m for m in models if m.num_registered >= options.min_model_size]
     with timer("export"):
         reconstructions = [model.export() for model in models]
+    nearest.close()  # on an exception, its idle threads end with it
     return sorted(reconstructions, key=lambda r: (-r.num_reg_images(), -r.num_points3D()))
 
 

@@ -34,17 +34,19 @@ def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple
                    triangulation: TriangulationOptions) -> int:
     """Keypoints compatible with an observation of an existing point join its track
     when the point reprojects onto them (one keypoint per point, the closest)."""
-    observed = set(model.observations(image_id)[1].tolist())
-    kps, point_ids = [], []
-    for kp, matches in candidates.items():
-        for other_id, other_kp in matches:
-            point_id = model.point_of[other_id][other_kp]
-            if point_id >= 0 and point_id not in observed:
-                kps.append(kp)
-                point_ids.append(point_id)
-    if not kps:
+    observed_ids = model.observations(image_id)[1]
+    # Every (keypoint, other image's keypoint) pair in the candidates' order, looked up
+    # at once as flat indices into model.point_of_flat.
+    kps = np.array([kp for kp, matches in candidates.items() for _ in matches], np.int64)
+    flat = np.array([model.flat_offset[other_id] + other_kp
+                     for matches in candidates.values() for other_id, other_kp in matches],
+                    np.int64)
+    point_ids = model.point_of_flat[flat]
+    new_point = (point_ids >= 0) & ~np.isin(point_ids, observed_ids)
+    kps, point_ids = kps[new_point], point_ids[new_point]
+    if not len(kps):
         return 0
-    kps, point_ids = np.array(kps), np.array(point_ids)
+    observed = set(observed_ids.tolist())
     errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
     ok = errors <= triangulation.max_reproj_error_px
     kps, point_ids, errors = kps[ok], point_ids[ok], errors[ok]
