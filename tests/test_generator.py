@@ -70,24 +70,25 @@ def ours(folder: Path, options: MapperOptions | None = None) -> pycolmap.Reconst
 
 
 @pytest.mark.parametrize("camera_model, noise_px, inlier_ratio, max_error_deg, min_observations", [
-    ("PINHOLE", 0.5, 1.0, 0.1, 0.99),
-    ("SIMPLE_RADIAL", 0.5, 0.7, 0.1, 0.99),
-    ("PINHOLE", 1.5, 0.7, 0.3, 0.94),
+    ("PINHOLE", 0.5, 1.0, 0.1, 1.0),
+    ("SIMPLE_RADIAL", 0.5, 0.7, 0.1, 1.0),
+    ("PINHOLE", 1.5, 0.7, 0.3, 0.99),
 ])
 def test_poses_and_tracks_of_generated_databases(tmp_path, camera_model, noise_px, inlier_ratio,
                                                  max_error_deg, min_observations):
     """Every image registered, rotations within about 2.5x the worst measured, and the
-    true tracks kept whole: about one point per true track and nearly every true
-    observation, also where the noise crosses the pixel thresholds. Measured over seeds
-    0-2: R_err max 0.045 deg at 0.5 px, 0.131 at 1.5 px; observations 0.997-1.000 of the
-    truth's at 0.5 px, 0.966-0.974 at 1.5 px in 1.02-1.04 points per true track (with
-    thresholds fixed at 3 px, at 30 images: 0.83 in 1.39)."""
+    true tracks kept whole: one point per true track and every true observation, nearly
+    every one where the noise crosses the pixel thresholds. Measured over seeds 0-2
+    (2026-11-26): R_err max 0.043 deg at 0.5 px, 0.131 at 1.5 px; observations 1.000 of the
+    truth's at 0.5 px, 0.996-0.999 at 1.5 px in 1.00-1.01 points per true track (the day
+    before, the retriangulation's cap and a noise limit at 3x the median: 0.997-1.000 and
+    0.966-0.974 in 1.02-1.04; thresholds fixed at 3 px, at 30 images: 0.83 in 1.39)."""
     truth = generate(tmp_path, camera_model, noise_px, inlier_ratio, seed=1)
     model = ours(tmp_path)
     assert model.num_reg_images() == truth.num_images()
     assert rotation_errors(model, truth).max() < max_error_deg
-    assert model.num_points3D() < 1.1 * truth.num_points3D()
-    assert model.compute_num_observations() > min_observations * truth.compute_num_observations()
+    assert model.num_points3D() <= 1.02 * truth.num_points3D()
+    assert model.compute_num_observations() >= min_observations * truth.compute_num_observations()
 
 
 @pytest.mark.parametrize("max_outlier_share, least_squares", [(0.01, True), (0.0, False)])
