@@ -20,8 +20,9 @@ def adjustment_options(ba: BundleAdjustmentOptions, local: bool, num_threads: in
                        loss_scale_px: float | None = None) -> pycolmap.BundleAdjustmentOptions:
     """pycolmap's options for one adjustment, local or global, with ours: the loss and its
     scale (default: the robust one, BundleAdjustmentOptions.loss and loss_scale_px; least
-    squares has its own function tolerance), Ceres's limits (local_* or global_*) and threads, and the intrinsics refined
-    only where `refine_intrinsics` and the options ask for it."""
+    squares has its own function tolerance), Ceres's limits (local_* or global_*) and
+    threads, and the intrinsics refined only where `refine_intrinsics` and the options ask
+    for it."""
     refine = refine_intrinsics and ba.refines_intrinsics
     ba_options = pycolmap.BundleAdjustmentOptions(
         refine_focal_length=refine and ba.refine_focal_length,

@@ -28,12 +28,11 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
         return empty
     index, angles = model.nearest(image_id, other_id)
     index, angles = index[kps], angles[kps]
-    E = pycolmap.essential_matrix_from_pose(model.pose(other_id) * model.pose(image_id).inverse())
-    repeated = np.repeat(kps, index.shape[1])
-    max_errors = guided.max_epipolar_error_px * pair_pixel_angles(
-        model, image_id, repeated, other_id, index.ravel())
-    errors = sampson_angles(E, model.rays[image_id][repeated], model.rays[other_id][index.ravel()])
-    compatible = (errors <= max_errors).reshape(index.shape) & \
+    candidates = np.column_stack([np.repeat(kps, index.shape[1]), index.ravel()])
+    on_epipolar_lines = epipolar_inliers(
+        model, (image_id, other_id), candidates,
+        model.pose(other_id) * model.pose(image_id).inverse(), guided.max_epipolar_error_px)
+    compatible = on_epipolar_lines.reshape(index.shape) & \
         (angles <= guided.max_descriptor_distance)
     first = np.argmax(compatible, axis=1)  # nearest compatible descriptor
     rows = np.flatnonzero(compatible.any(axis=1))
@@ -49,3 +48,17 @@ def pair_pixel_angles(model: Model, id1: int, kps1: np.ndarray, id2: int,
     """The mean angle (radians) a pixel spans at two corresponding keypoints: what a
     pixel threshold on a pair's epipolar error is multiplied by."""
     return 0.5 * (model.pixel_angles[id1][kps1] + model.pixel_angles[id2][kps2])
+
+
+def epipolar_inliers(model: Model, pair: tuple[int, int], matches: np.ndarray,
+                     cam2_from_cam1: pycolmap.Rigid3d, max_error_px: float) -> np.ndarray:
+    """Whether each match (keypoint of pair[0], keypoint of pair[1]) lies within
+    `max_error_px` of its epipolar lines under the relative pose `cam2_from_cam1`: its
+    angular Sampson error against the threshold times the pair's pixel angle there
+    (pair_pixel_angles). The one epipolar test of guided matching, the 5-point RANSAC's
+    inliers, registration's epipolar check and a rig frame's matches."""
+    id1, id2 = pair
+    errors = sampson_angles(pycolmap.essential_matrix_from_pose(cam2_from_cam1),
+                            model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]])
+    return errors <= max_error_px * pair_pixel_angles(model, id1, matches[:, 0], id2,
+                                                      matches[:, 1])

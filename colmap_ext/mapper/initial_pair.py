@@ -17,12 +17,12 @@ import pycolmap
 
 import solvers
 from colmap_ext.errors import UserError
-from colmap_ext.mapper.guided_matching import pair_pixel_angles
+from colmap_ext.mapper.guided_matching import epipolar_inliers, pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (InitializationOptions, TriangulationOptions,
                                        TwoViewOptions)
 from colmap_ext.mapper.triangulation import shared_observation_groups, triangulate_points
-from colmap_ext.mapper.two_view import Pair, epipolar_inliers, relative_pose
+from colmap_ext.mapper.two_view import Pair, relative_pose
 
 # Pairs evaluated when the mapper chooses: the ones with most verified matches; and
 # frames, those with most verified matches between their images.

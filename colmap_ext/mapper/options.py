@@ -172,7 +172,7 @@ class FilteringOptions:
     # model is adjusted again without them; 0: max_reproj_error_px alone.
     final_max_error_ratio: float = 10.0
     # A model's reprojection errors look like Gaussian keypoint noise where at most this
-    # share of them lie beyond 3x their median (filtering.outlier_share; Gaussian noise
+    # share of them lie beyond 3x their median (filtering.errors_look_gaussian; Gaussian noise
     # puts 0.2 % there). Such a model has no near-miss matches to leave out: it is adjusted
     # in least squares (BundleAdjustmentOptions.gaussian_loss), and its retriangulation keeps
     # the observations within the noise's limits, without

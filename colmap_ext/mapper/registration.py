@@ -10,9 +10,9 @@ import numpy as np
 import pycolmap
 
 import solvers
+from colmap_ext.mapper.guided_matching import epipolar_inliers
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import GuidedMatchingOptions, RegistrationOptions
-from colmap_ext.mapper.two_view import epipolar_inliers
 
 
 class Outcome(enum.Enum):

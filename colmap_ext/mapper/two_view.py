@@ -6,11 +6,9 @@ Verification happens in memory; the user's database is never written.
 from __future__ import annotations
 
 import numpy as np
-import pycolmap
 from tqdm import tqdm
 
 import solvers
-from colmap_ext.geometry import sampson_angles
 from colmap_ext.mapper.guided_matching import pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import TwoViewOptions
@@ -66,18 +64,6 @@ def relative_pose(model: Model, pair: Pair, matches: np.ndarray, max_error_px: f
             min_num_inliers=min_num_inliers, seed=seed)
     except solvers.EstimationError:
         return None
-
-
-def epipolar_inliers(model: Model, pair: Pair, matches: np.ndarray,
-                     cam2_from_cam1: pycolmap.Rigid3d, max_error_px: float) -> np.ndarray:
-    """Whether each match of a pair lies within `max_error_px` of its epipolar lines under
-    the relative pose `cam2_from_cam1`: its angular Sampson error against the threshold
-    times the pair's pixel angle there (pair_pixel_angles), the 5-point RANSAC's test."""
-    id1, id2 = pair
-    errors = sampson_angles(pycolmap.essential_matrix_from_pose(cam2_from_cam1),
-                            model.rays[id1][matches[:, 0]], model.rays[id2][matches[:, 1]])
-    return errors <= max_error_px * pair_pixel_angles(model, id1, matches[:, 0], id2,
-                                                      matches[:, 1])
 
 
 def with_rays_only(model: Model, pair: Pair, matches: np.ndarray) -> np.ndarray:
