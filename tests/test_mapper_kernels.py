@@ -109,6 +109,26 @@ def test_pair_store_gives_the_exact_nearest_over_all_and_over_subsets(small_bloc
         np.testing.assert_allclose(angles, true_angles, atol=1e-5)
 
 
+def test_a_few_keypoints_are_searched_alone_and_many_as_the_whole_pair() -> None:
+    rng = np.random.default_rng(4)
+    features = {1: random_sift(rng, 80), 2: random_sift(rng, 70)}
+    store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2**30, num_threads=1)
+    true_index, true_angles = brute_force_nearest(features[1], features[2], 3)
+    few = np.array([3, 17, 42, 79])  # at most FEW_ROWS_SHARE of 80
+    store.prefetch(1, [2], few)
+    index, angles = store(1, 2, few)
+    assert (index == true_index[few]).all()
+    np.testing.assert_allclose(angles, true_angles[few], atol=1e-5)
+    assert (1, 2) not in store.pairs  # rows alone are not kept
+    many = np.arange(0, 80, 2)
+    index, angles = store(1, 2, many)
+    assert (index == true_index[many]).all()
+    assert (1, 2) in store.pairs  # the whole pair, kept for the next ask
+    # Once kept, a few rows come from it.
+    index, _ = store(1, 2, few)
+    assert (index == true_index[few]).all()
+
+
 def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
     rng = np.random.default_rng(2)
     features = {i: random_sift(rng, 100) for i in range(4)}

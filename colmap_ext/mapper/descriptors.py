@@ -17,6 +17,9 @@ import solvers
 # Cosines computed at once: 4 MiB of float32, which stays in cache while the
 # nearest are taken (smaller and larger blocks measured slower).
 QUERY_BLOCK_ENTRIES = 2**20
+# A search for at most this share of an image's keypoints (a grown model's few free
+# ones) covers those rows alone and is not kept; a larger one, the whole pair, kept.
+FEW_ROWS_SHARE = 0.25
 # The BLAS libraries loaded, found once at import: the search runs Python inside a
 # ctypes callback, where a Ctrl-C would be printed and lost instead of raised.
 BLAS = ThreadpoolController()
@@ -132,17 +135,29 @@ class NearestDescriptors:
             self._pool.shutdown()
             self._pool = None
 
-    def __call__(self, image_id: int, other_id: int) -> tuple[np.ndarray, np.ndarray]:
-        """(index, angles), each (keypoints of image_id, k), nearest first; one column
-        for a pair whose candidates are the database's matches."""
+    def __call__(self, image_id: int, other_id: int, kps: np.ndarray | None = None
+                 ) -> tuple[np.ndarray, np.ndarray]:
+        """(index, angles), each (keypoints of image_id, k), nearest first, or for its
+        keypoints `kps` alone; one column for a pair whose candidates are the database's
+        matches. A few keypoints (FEW_ROWS_SHARE) of a pair not kept are searched alone."""
         if self._uses_matches(image_id, other_id):
             index, angles, _ = self._matched(image_id, other_id, np.zeros(0, np.int64), 0)
+        elif kps is not None and (image_id, other_id) not in self.pairs and \
+                self._few(image_id, kps):
+            units = self._unit(image_id)[kps], self._unit(other_id)
+            with BLAS.limit(limits=1, user_api="blas"):
+                index, angles, _ = nearest_unit_descriptors(*units, self.k)
             return index, angles
-        self.prefetch(image_id, [other_id])
-        return self.pairs.get((image_id, other_id))
+        else:
+            self.prefetch(image_id, [other_id])
+            index, angles = self.pairs.get((image_id, other_id))
+        return (index, angles) if kps is None else (index[kps], angles[kps])
 
-    def prefetch(self, image_id: int, other_ids: list[int]) -> None:
-        """Search the pairs (image_id, other) not kept yet, in parallel."""
+    def prefetch(self, image_id: int, other_ids: list[int], kps: np.ndarray | None = None) -> None:
+        """Search the pairs (image_id, other) not kept yet, in parallel; none where only
+        a few keypoints `kps` will be asked for (they are searched alone)."""
+        if kps is not None and self._few(image_id, kps):
+            return
         missing = [(other_id, np.zeros(0, np.int64)) for other_id in other_ids
                    if (image_id, other_id) not in self.pairs
                    and not self._uses_matches(image_id, other_id)]
@@ -180,6 +195,9 @@ class NearestDescriptors:
         if image_id not in self.units:
             self.units.keep(image_id, (unit_descriptors(self.descriptors[image_id]),))
         return self.units.get(image_id)[0]
+
+    def _few(self, image_id: int, kps: np.ndarray) -> bool:
+        return len(kps) <= FEW_ROWS_SHARE * self.num_keypoints[image_id]
 
     def _uses_matches(self, image_id: int, other_id: int) -> bool:
         """Whether the pair's exact search would compare more than max_search_pairs."""

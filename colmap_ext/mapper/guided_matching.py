@@ -26,8 +26,7 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
     if len(kps) == 0 or len(model.keypoints[other_id]) == 0:
         return empty
-    index, angles = model.nearest(image_id, other_id)
-    index, angles = index[kps], angles[kps]
+    index, angles = model.nearest(image_id, other_id, kps)
     candidates = np.column_stack([np.repeat(kps, index.shape[1]), index.ravel()])
     on_epipolar_lines = epipolar_inliers(
         model, (image_id, other_id), candidates,

@@ -83,6 +83,10 @@ class RegistrationOptions:
     min_epipolar_support: float = 0.85
     # Times an image that failed to register is tried again as the model grows.
     max_trials: int = 3
+    # An image's keypoints are matched to model points by descriptor too while fewer than
+    # this share of them have a point through verified matches: beyond it there is next
+    # to nothing left for the search, most of a registration's time, to find.
+    descriptor_search_max_verified_share: float = 0.8
 
     def check(self) -> None:
         _require(self.order in ORDERS, self, "order", f"one of {', '.join(ORDERS)}")
@@ -92,6 +96,8 @@ class RegistrationOptions:
                  "in [0, 1]")
         _require(0 <= self.min_epipolar_support <= 1, self, "min_epipolar_support", "in [0, 1]")
         _require(self.max_trials >= 1, self, "max_trials", ">= 1")
+        _require(0 <= self.descriptor_search_max_verified_share <= 1, self,
+                 "descriptor_search_max_verified_share", "in [0, 1]")
 
 
 @dataclass

@@ -29,7 +29,7 @@ from colmap_ext.mapper.refinement import (MatchGraphs, ModelAdjuster, refine_joi
                                           retriangulate, triangulate_images)
 from colmap_ext.mapper.registration import (Correspondences, Outcome,
                                             descriptor_correspondences, register_frame,
-                                            track_correspondences)
+                                            searches_descriptors, track_correspondences)
 from colmap_ext.mapper.triangulation import triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
@@ -200,11 +200,11 @@ class IncrementalMapper:
 
     def _register(self, image_id: int) -> bool:
         """Register the image's frame: P3P (GP3P for a rig's frame) on correspondences
-        through verified matches and descriptor matches to nearby points. A pose off the
-        verified matches' epipolar lines is tried again through verified matches alone
-        (descriptor matches on repeated texture can pull it away); too few inliers,
-        through raw matches too (pairs whose two-view verification failed can still hold
-        enough inliers for an absolute pose)."""
+        through verified matches and descriptor matches to nearby points (where
+        searches_descriptors). A pose off the verified matches' epipolar lines is tried
+        again through verified matches alone (descriptor matches on repeated texture can
+        pull it away); too few inliers, through raw matches too (pairs whose two-view
+        verification failed can still hold enough inliers for an absolute pose)."""
         model, graphs, options = self.model, self.graphs, self.options
         guided = options.guided_matching
 
@@ -213,10 +213,11 @@ class IncrementalMapper:
                                   options.seed)
 
         image_ids = model.frame_images(image_id)
+        verified = {i: track_correspondences(model, i, graphs.verified) for i in image_ids}
         descriptor = {i: descriptor_correspondences(
             model, i, graphs.neighbours(model, i, guided.num_images), guided)
-            for i in image_ids}
-        verified = {i: track_correspondences(model, i, graphs.verified) for i in image_ids}
+            if searches_descriptors(model, i, verified[i][0], options.registration)
+            else (np.zeros(0, np.int64), np.zeros(0, np.int64)) for i in image_ids}
         outcome = register(_joined(descriptor, verified))
         if outcome is Outcome.INCONSISTENT:
             outcome = register(verified)

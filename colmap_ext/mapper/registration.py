@@ -63,6 +63,14 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
     return np.concatenate(kps), np.concatenate(point_ids)
 
 
+def searches_descriptors(model: Model, image_id: int, verified_kps: np.ndarray,
+                         registration: RegistrationOptions) -> bool:
+    """Whether the image's descriptors are matched to model points too: while verified
+    matches give fewer than descriptor_search_max_verified_share of its keypoints a point."""
+    return len(np.unique(verified_kps)) < \
+        registration.descriptor_search_max_verified_share * len(model.keypoints[image_id])
+
+
 Correspondences = dict[int, tuple[np.ndarray, np.ndarray]]  # image id -> (keypoints, point ids)
 
 

@@ -20,7 +20,7 @@ def triangulate_image(model: Model, image_id: int, neighbours: list[int],
     (observations added to existing points, new points)."""
     free = np.flatnonzero(model.point_of[image_id] < 0)
     candidates: dict[int, list[tuple[int, int]]] = {}  # kp -> [(other image, other kp)]
-    model.nearest.prefetch(image_id, neighbours)
+    model.nearest.prefetch(image_id, neighbours, free)
     for other_id in neighbours:
         kps, other_kps, _ = compatible_features(model, image_id, other_id, free, guided)
         for kp, other_kp in zip(kps.tolist(), other_kps.tolist()):
