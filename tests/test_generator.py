@@ -123,24 +123,25 @@ def test_gaussian_errors_end_on_a_least_squares_adjustment(tmp_path, max_outlier
     assert (angles_between(before, after).max() < 0.001) == least_squares
 
 
-def test_registration_leaves_out_a_descriptor_search_with_nothing_left_to_find(tmp_path,
-                                                                              monkeypatch):
-    """Here verified matches give 99 % of each new image's keypoints a model point
-    (the real sets: at most 39 %): registration then searches no descriptors
-    (RegistrationOptions.descriptor_search_max_verified_share), and the model is the
+def test_verified_matches_stand_in_for_a_descriptor_search_with_nothing_left_to_find(
+        tmp_path, monkeypatch):
+    """Here verified matches give 99 % of each image's keypoints a correspondence (the
+    real sets: at most 39 %): registration and triangulation then search no image pair's
+    descriptors (GuidedMatchingOptions.skip_search_verified_share), and the model is the
     one the searches give."""
-    import colmap_ext.mapper.pipeline as pipeline
+    from colmap_ext.mapper.descriptors import NearestDescriptors
     truth = generate(tmp_path, "PINHOLE", 0.5, 1.0, seed=2)
     searched = []
-    search = pipeline.descriptor_correspondences
-    monkeypatch.setattr(pipeline, "descriptor_correspondences",
-                        lambda *args: searched.append(args[1]) or search(*args))
+    search = NearestDescriptors.search_subsets
+    monkeypatch.setattr(NearestDescriptors, "search_subsets",
+                        lambda self, image_id, subsets, k: searched.extend(subsets) or
+                        search(self, image_id, subsets, k))
     model = ours(tmp_path)
     assert not searched
     options = MapperOptions(seed=0)
-    options.registration.descriptor_search_max_verified_share = 1.0
+    options.guided_matching.skip_search_verified_share = 1.0
     with_search = ours(tmp_path, options)
-    assert len(searched) == truth.num_images() - 2
+    assert len(searched) > truth.num_images()
     assert angles_between(aligned_rotations(model, truth),
                           aligned_rotations(with_search, truth)).max() < 1e-6
     assert model.compute_num_observations() == with_search.compute_num_observations()

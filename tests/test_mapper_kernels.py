@@ -17,7 +17,7 @@ import solvers
 from colmap_ext.database import DescriptorReader, read_database
 from colmap_ext.mapper import MapperOptions, descriptors
 from colmap_ext.mapper.descriptors import NearestDescriptors, nearest_descriptors, unit_descriptors
-from colmap_ext.mapper.guided_matching import compatible_features
+from colmap_ext.mapper.guided_matching import compatible_features, verified_partners
 from colmap_ext.mapper.model import Model, cross_norms
 from colmap_ext.mapper.filtering import has_triangulation_angle
 from colmap_ext.mapper.registration import epipolar_support
@@ -257,6 +257,37 @@ def test_guided_matching_finds_the_true_correspondences(tmp_path) -> None:
     # Measured: every one correct, every shared point found (scene seeds 0-2, 140-166 points).
     assert correct.mean() > 0.95
     assert correct.sum() > 0.9 * shared
+
+
+def test_verified_partners_stand_in_only_where_they_match_most_keypoints(tmp_path) -> None:
+    """The same two posed views: the database's true matches of the shared points stand
+    in for the search (one candidate each, the other keypoints searched) where they
+    cover skip_search_verified_share of the keypoints asked about, and give the search's
+    correspondences; below that share, the keypoints are searched."""
+    scene = ring_scene(num_images=6, seed=0)
+    truth = write_synthetic_database(tmp_path / "database.db", scene,
+                                     scene_points(scene, 1500, seed=0), seed=0)
+    db = read_database(tmp_path / "database.db")
+    guided = MapperOptions().guided_matching
+    first, second = truth.image_ids[0], truth.image_ids[1]
+    store = NearestDescriptors(db.descriptors, sizes(db.descriptors), guided.num_neighbors,
+                               2**26, num_threads=1)
+    model = Model(db, store)
+    for view, image_id in enumerate(truth.image_ids[:2]):
+        model.register(image_id, scene.cams_from_world[view])
+    shared, kps1, kps2 = np.intersect1d(truth.point_ids[0], truth.point_ids[1],
+                                        return_indices=True)
+    matches = np.column_stack([kps1, kps2])
+    all_kps = np.arange(len(truth.point_ids[0]))
+    assert verified_partners(model, first, all_kps, matches, guided) is None  # 10 % matched
+    partners = verified_partners(model, first, kps1, matches[:-1], guided)
+    assert (partners[:-1] == kps2[:-1]).all() and partners[-1] == -1
+    searched = compatible_features(model, first, second, kps1, guided)
+    stood_in = compatible_features(model, first, second, kps1, guided, partners)
+    assert len(searched[0]) > 0.9 * len(shared)
+    np.testing.assert_array_equal(searched[0], stood_in[0])
+    np.testing.assert_array_equal(searched[1], stood_in[1])
+    np.testing.assert_allclose(searched[2], stood_in[2], atol=1e-5)  # float32 cosines
 
 
 def test_epipolar_support_tells_the_true_pose_from_a_turned_one(tmp_path) -> None:

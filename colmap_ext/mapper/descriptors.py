@@ -190,6 +190,12 @@ class NearestDescriptors:
                 self.pairs.keep((image_id, other_id), (index, angles))
         return [found for _, _, found in results]
 
+    def pair_angles(self, image_id: int, kps: np.ndarray, other_id: int,
+                    other_kps: np.ndarray) -> np.ndarray:
+        """The descriptor angles (radians) of keypoint pairs (kps[i], other_kps[i])."""
+        return _angles(np.einsum("ij,ij->i", self._unit(image_id)[kps],
+                                 self._unit(other_id)[other_kps]))
+
     def _unit(self, image_id: int) -> np.ndarray:
         """The image's unit_descriptors, kept for its other pairs."""
         if image_id not in self.units:
@@ -213,8 +219,7 @@ class NearestDescriptors:
         else:
             pairs = self.matches.get((other_id, image_id), np.zeros((0, 2), np.int64))[:, ::-1]
         kps, other_kps = pairs[:, 0], pairs[:, 1].astype(np.int64)
-        cosines = np.einsum("ij,ij->i", unit_descriptors(self.descriptors[image_id][kps]),
-                            unit_descriptors(self.descriptors[other_id][other_kps]))
+        pair_angles = self.pair_angles(image_id, kps, other_id, other_kps)
         num_queries = self.num_keypoints[image_id]
 
         def candidates(found: np.ndarray, targets: np.ndarray,
@@ -223,7 +228,7 @@ class NearestDescriptors:
             angles = np.full((num_queries, columns), np.inf, np.float32)
             if columns:
                 index[kps[found], 0] = targets
-                angles[kps[found], 0] = _angles(cosines[found])
+                angles[kps[found], 0] = pair_angles[found]
             return index, angles
 
         index, angles = candidates(np.ones(len(kps), bool), other_kps, 1)

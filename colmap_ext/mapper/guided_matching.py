@@ -13,7 +13,7 @@ from colmap_ext.mapper.options import GuidedMatchingOptions
 
 
 def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndarray,
-                        guided: GuidedMatchingOptions
+                        guided: GuidedMatchingOptions, partners: np.ndarray | None = None
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For keypoints `kps` of `image_id`, the best compatible keypoint in `other_id`.
 
@@ -21,12 +21,14 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     `max_descriptor_distance`, and within the reprojection threshold of the epipolar
     line (angular Sampson error, against the threshold in pixels times the mean angle a
     pixel spans at the two keypoints). The closest such descriptor wins; each keypoint of the
-    other image is used at most once. Returns (kps, other_kps, angles).
+    other image is used at most once. `partners` (verified_partners): a keypoint's verified
+    match is its one candidate, and only the keypoints without one are searched.
+    Returns (kps, other_kps, angles).
     """
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
     if len(kps) == 0 or len(model.keypoints[other_id]) == 0:
         return empty
-    index, angles = model.nearest(image_id, other_id, kps)
+    index, angles = _candidates(model, image_id, other_id, kps, partners)
     candidates = np.column_stack([np.repeat(kps, index.shape[1]), index.ravel()])
     on_epipolar_lines = epipolar_inliers(
         model, (image_id, other_id), candidates,
@@ -40,6 +42,39 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     _, unique = np.unique(other[order], return_index=True)
     keep = order[unique]
     return kps[keep], other[keep], angles[keep]
+
+
+def verified_partners(model: Model, image_id: int, kps: np.ndarray, matches: np.ndarray,
+                      guided: GuidedMatchingOptions) -> np.ndarray | None:
+    """Per keypoint of `kps`, its match in a pair's verified `matches` (keypoint of
+    image_id, of the other image), -1 for none; None (search them all) unless
+    guided.skip_search_verified_share of them have one."""
+    partner = np.full(len(model.keypoints[image_id]), -1, np.int64)
+    partner[matches[:, 0]] = matches[:, 1]
+    partners = partner[kps]
+    if np.count_nonzero(partners >= 0) < guided.skip_search_verified_share * len(kps):
+        return None
+    return partners
+
+
+def _candidates(model: Model, image_id: int, other_id: int, kps: np.ndarray,
+                partners: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(index, angles) of the keypoints' candidates in the other image, nearest first:
+    their nearest descriptors, or their verified partners (one column, the other places
+    at an infinite angle) with the nearest descriptors of those without one."""
+    if partners is None:
+        return model.nearest(image_id, other_id, kps)
+    index = np.zeros((len(kps), model.nearest.k), np.int64)
+    angles = np.full((len(kps), model.nearest.k), np.inf, np.float32)
+    matched = partners >= 0
+    index[matched, 0] = partners[matched]
+    angles[matched, 0] = model.nearest.pair_angles(image_id, kps[matched], other_id,
+                                                   partners[matched])
+    if not matched.all():
+        searched_index, searched_angles = model.nearest(image_id, other_id, kps[~matched])
+        columns = searched_index.shape[1]
+        index[~matched, :columns], angles[~matched, :columns] = searched_index, searched_angles
+    return index, angles
 
 
 def pair_pixel_angles(model: Model, id1: int, kps1: np.ndarray, id2: int,

@@ -83,10 +83,6 @@ class RegistrationOptions:
     min_epipolar_support: float = 0.85
     # Times an image that failed to register is tried again as the model grows.
     max_trials: int = 3
-    # An image's keypoints are matched to model points by descriptor too while fewer than
-    # this share of them have a point through verified matches: beyond it there is next
-    # to nothing left for the search, most of a registration's time, to find.
-    descriptor_search_max_verified_share: float = 0.8
 
     def check(self) -> None:
         _require(self.order in ORDERS, self, "order", f"one of {', '.join(ORDERS)}")
@@ -96,8 +92,6 @@ class RegistrationOptions:
                  "in [0, 1]")
         _require(0 <= self.min_epipolar_support <= 1, self, "min_epipolar_support", "in [0, 1]")
         _require(self.max_trials >= 1, self, "max_trials", ">= 1")
-        _require(0 <= self.descriptor_search_max_verified_share <= 1, self,
-                 "descriptor_search_max_verified_share", "in [0, 1]")
 
 
 @dataclass
@@ -117,6 +111,10 @@ class GuidedMatchingOptions:
     # compares at most this many keypoint pairs (keypoints x keypoints; 2**24: 4096 each),
     # and from the database's matches beyond (descriptors.NearestDescriptors).
     max_search_pairs: int = 2**24
+    # Where verified matches already give this share of the keypoints a correspondence (a
+    # new image's to model points, a pair's free keypoints to the other image's), they
+    # stand in for the descriptor search, which could add next to nothing; 1: always search.
+    skip_search_verified_share: float = 0.8
 
     def check(self) -> None:
         _require(self.num_neighbors >= 1, self, "num_neighbors", ">= 1")
@@ -125,6 +123,8 @@ class GuidedMatchingOptions:
                  "in (0, pi]")
         _require(self.max_epipolar_error_px > 0, self, "max_epipolar_error_px", "> 0")
         _require(self.max_search_pairs >= 0, self, "max_search_pairs", ">= 0")
+        _require(0 <= self.skip_search_verified_share <= 1, self, "skip_search_verified_share",
+                 "in [0, 1]")
 
 
 @dataclass

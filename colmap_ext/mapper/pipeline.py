@@ -114,7 +114,8 @@ class IncrementalMapper:
             for image_id in new_images:
                 triangulate_image(self.model, image_id,
                                   [other for other in registered if other != image_id],
-                                  options.guided_matching, options.triangulation, min_views=2)
+                                  options.guided_matching, options.triangulation, min_views=2,
+                                  verified=self.graphs.verified.get(image_id, {}))
         self._global_adjustment()
         self._advance(self.model.num_registered)
         return True
@@ -216,7 +217,7 @@ class IncrementalMapper:
         verified = {i: track_correspondences(model, i, graphs.verified) for i in image_ids}
         descriptor = {i: descriptor_correspondences(
             model, i, graphs.neighbours(model, i, guided.num_images), guided)
-            if searches_descriptors(model, i, verified[i][0], options.registration)
+            if searches_descriptors(model, i, verified[i][0], guided)
             else (np.zeros(0, np.int64), np.zeros(0, np.int64)) for i in image_ids}
         outcome = register(_joined(descriptor, verified))
         if outcome is Outcome.INCONSISTENT:

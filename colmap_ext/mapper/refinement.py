@@ -59,7 +59,8 @@ def triangulate_images(model: Model, image_ids: Iterable[int], graphs: MatchGrap
     (chosen as it comes: the images before it may have added shared points)."""
     for image_id in image_ids:
         triangulate_image(model, image_id, graphs.neighbours(model, image_id, guided.num_images),
-                          guided, triangulation, min_views=2)
+                          guided, triangulation, min_views=2,
+                          verified=graphs.verified.get(image_id, {}))
 
 
 class ModelAdjuster:

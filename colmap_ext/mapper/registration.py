@@ -64,11 +64,11 @@ def descriptor_correspondences(model: Model, image_id: int, neighbours: list[int
 
 
 def searches_descriptors(model: Model, image_id: int, verified_kps: np.ndarray,
-                         registration: RegistrationOptions) -> bool:
-    """Whether the image's descriptors are matched to model points too: while verified
-    matches give fewer than descriptor_search_max_verified_share of its keypoints a point."""
+                         guided: GuidedMatchingOptions) -> bool:
+    """Whether the image's descriptors are matched to model points too: unless verified
+    matches give skip_search_verified_share of its keypoints a point."""
     return len(np.unique(verified_kps)) < \
-        registration.descriptor_search_max_verified_share * len(model.keypoints[image_id])
+        guided.skip_search_verified_share * len(model.keypoints[image_id])
 
 
 Correspondences = dict[int, tuple[np.ndarray, np.ndarray]]  # image id -> (keypoints, point ids)

@@ -7,22 +7,30 @@ import numpy as np
 import pycolmap
 
 import solvers
-from colmap_ext.mapper.guided_matching import compatible_features
+from colmap_ext.mapper.guided_matching import compatible_features, verified_partners
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import GuidedMatchingOptions, TriangulationOptions
 
 
 def triangulate_image(model: Model, image_id: int, neighbours: list[int],
                       guided: GuidedMatchingOptions, triangulation: TriangulationOptions,
-                      min_views: int) -> tuple[int, int]:
+                      min_views: int, verified: dict[int, np.ndarray] | None = None
+                      ) -> tuple[int, int]:
     """Guided matching of `image_id`'s free keypoints against `neighbours`, then track
-    extension and new points with at least `min_views` observations. Returns
+    extension and new points with at least `min_views` observations. `verified`, the
+    image's verified matches by other image, stand in for a neighbour's descriptor
+    search where they match most free keypoints (verified_partners). Returns
     (observations added to existing points, new points)."""
     free = np.flatnonzero(model.point_of[image_id] < 0)
     candidates: dict[int, list[tuple[int, int]]] = {}  # kp -> [(other image, other kp)]
-    model.nearest.prefetch(image_id, neighbours, free)
+    verified = verified or {}
+    partners = {other_id: verified_partners(model, image_id, free, verified[other_id], guided)
+                for other_id in neighbours if other_id in verified}
+    model.nearest.prefetch(image_id, [other_id for other_id in neighbours
+                                      if partners.get(other_id) is None], free)
     for other_id in neighbours:
-        kps, other_kps, _ = compatible_features(model, image_id, other_id, free, guided)
+        kps, other_kps, _ = compatible_features(model, image_id, other_id, free, guided,
+                                                partners.get(other_id))
         for kp, other_kp in zip(kps.tolist(), other_kps.tolist()):
             candidates.setdefault(kp, []).append((other_id, other_kp))
     num_extended = _extend_tracks(model, image_id, candidates, triangulation)
