@@ -54,6 +54,11 @@ def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple
     kps, point_ids = kps[new_point], point_ids[new_point]
     if not len(kps):
         return 0
+    # Each (keypoint, point) once, the first in the candidates' order: a point seen in
+    # several neighbours comes once from each, and only its first could join.
+    _, first = np.unique(kps * (int(point_ids.max()) + 1) + point_ids, return_index=True)
+    first.sort()
+    kps, point_ids = kps[first], point_ids[first]
     observed = set(observed_ids.tolist())
     errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
     ok = errors <= triangulation.max_reproj_error_px
