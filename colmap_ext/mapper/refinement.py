@@ -157,21 +157,27 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     (final). The points it grew with were accepted within max_reproj_error_px while
     the poses were still moving; again from the final poses, each observation must lie
     within retriangulation_max_error_ratio x the model's median reprojection error
-    (filtering.error_limit), which leaves out the near-miss matches; where the errors
+    (filtering.error_limit), which leaves out the near-miss matches. Where the errors
     look like Gaussian noise alone (filtering.errors_look_gaussian) there are none, and
-    that cap would only cut the noise's tail. Returns the number of points."""
-    graphs = MatchGraphs.of(model, matches)
+    that cap would only cut the noise's tail: the points are those the noise split or
+    kept from observations, the ones verified matches disagree with (points_off_matches),
+    and none where they agree with every track. Returns the number of points."""
     registered = model.registered
     triangulation = options.triangulation
     errors = reprojection_errors(model, registered)
     gaussian = errors_look_gaussian(errors, options.filtering)
+    point_ids = points_off_matches(model, matches) if gaussian else model.point_ids
+    if gaussian and not point_ids:
+        timer.counts["retriangulations left out"] += 1
+        return model.reconstruction.num_points3D()
+    graphs = MatchGraphs.of(model, matches)
     limit = error_limit(triangulation.max_reproj_error_px,
                         float(np.median(errors)) if len(errors) else np.inf,
                         options.filtering.noise_max_error_ratio,
                         0.0 if gaussian else triangulation.retriangulation_max_error_ratio)
     strict = dataclasses.replace(triangulation, max_reproj_error_px=limit)
     with timer("triangulation"):
-        for point_id in model.point_ids:
+        for point_id in point_ids:
             model.delete_point(point_id)
         triangulate_images(model, model.registration_order, graphs, options.guided_matching,
                            strict)
@@ -182,3 +188,17 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     # One round: the observations are fresh, and a second changed nothing measured.
     ModelAdjuster.of(model, options, timer).global_adjustment(final=True, rounds=1)
     return model.reconstruction.num_points3D()
+
+
+def points_off_matches(model: Model, matches: dict[Pair, np.ndarray]) -> list[int]:
+    """The points of the verified matches between the model's registered images whose
+    two keypoints are not observations of one point (split tracks, missing observations)."""
+    point_ids = []
+    for (image_id1, image_id2), pair_matches in matches.items():
+        if model.is_registered(image_id1) and model.is_registered(image_id2):
+            points1 = model.point_of[image_id1][pair_matches[:, 0]]
+            points2 = model.point_of[image_id2][pair_matches[:, 1]]
+            off = points1 != points2
+            point_ids += [points1[off], points2[off]]
+    point_ids = np.unique(np.concatenate(point_ids)) if point_ids else np.zeros(0, np.int64)
+    return point_ids[point_ids >= 0].tolist()
