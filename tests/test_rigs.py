@@ -434,3 +434,40 @@ def test_initial_images_of_one_frame_start_the_model_from_that_frame(tmp_path: P
                                np.eye(4)[:3], atol=1e-12)
     with pytest.raises(UserError, match=f"initial images {id1} and {id2} are of one frame"):
         run(tmp_path / "few", min_num_inliers=10_000)
+
+
+def test_the_frames_relative_pose_is_asked_of_the_chosen_pair_alone(tmp_path: Path,
+                                                                     monkeypatch) -> None:
+    """The initial pair of a rig's frames: the generalized relative pose (the costly
+    step) is computed for the pair with most points, not for every candidate; a
+    candidate whose frames give none makes way for the next best, as where all were asked."""
+    from colmap_ext.database import read_database
+    from colmap_ext.mapper import initial_pair
+    from colmap_ext.mapper.descriptors import NearestDescriptors
+    from colmap_ext.mapper.model import Model
+    from colmap_ext.mapper.two_view import verified_matches
+
+    generated_rigs(tmp_path / "database.db", 1, 4, 6, num_points=300, seed=0, noise_px=0.5)
+    db = read_database(tmp_path / "database.db")
+    options = mapper.MapperOptions(seed=0)
+    model = Model(db, NearestDescriptors(db.descriptors, {i: len(db.images[i].keypoints)
+                                                          for i in db.images}, 3, 2**26, 1))
+    matches = verified_matches(model, options.two_view, 0, progress=False)
+    asked = []
+    with_frames = initial_pair.with_frames
+
+    def choose(refuse: set):
+        def counted(model, reconstructed, *args):
+            asked.append(reconstructed.pair)
+            return None if reconstructed.pair in refuse else with_frames(model, reconstructed,
+                                                                         *args)
+        monkeypatch.setattr(initial_pair, "with_frames", counted)
+        asked.clear()
+        return initial_pair.best_pair(model, matches, options.initialization, options.two_view,
+                                      options.triangulation, set(), 0)
+
+    chosen = choose(set())
+    assert asked == [chosen.pair] and chosen.rig2_from_rig1 is not None
+    after = choose({chosen.pair})
+    assert asked == [chosen.pair, after.pair] and after.rig2_from_rig1 is not None
+    assert len(after.matches) <= len(chosen.matches)

@@ -175,8 +175,8 @@ def best_pair(model: Model, matches: dict[Pair, np.ndarray],
                         key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
     reconstructed = []
     for pair in candidates:
-        candidate = _reconstruct_frames(model, pair, matches, initialization, two_view,
-                                        triangulation, seed)
+        candidate = reconstruct_pair(model, pair, matches[pair], initialization, two_view,
+                                     triangulation, seed)
         if candidate is None:
             excluded.add(pair)
         else:
@@ -184,8 +184,14 @@ def best_pair(model: Model, matches: dict[Pair, np.ndarray],
     min_angle = initialization.min_tri_angle_deg
     while reconstructed:
         wide = [candidate for candidate in reconstructed if candidate.median_angle_deg >= min_angle]
-        if wide:
-            return max(wide, key=lambda candidate: len(candidate.matches))
+        # Most points first; a rig's frames must also give their relative pose
+        # (with_frames), asked of one candidate at a time: it is the costly step.
+        for candidate in sorted(wide, key=lambda candidate: -len(candidate.matches)):
+            framed = with_frames(model, candidate, matches, initialization, two_view, seed)
+            if framed is not None:
+                return framed
+            excluded.add(candidate.pair)
+            reconstructed = [other for other in reconstructed if other is not candidate]
         if min_angle / 2 < triangulation.min_tri_angle_deg:
             break
         min_angle /= 2
