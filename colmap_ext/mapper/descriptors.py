@@ -192,9 +192,11 @@ class NearestDescriptors:
 
     def pair_angles(self, image_id: int, kps: np.ndarray, other_id: int,
                     other_kps: np.ndarray) -> np.ndarray:
-        """The descriptor angles (radians) of keypoint pairs (kps[i], other_kps[i])."""
-        return _angles(np.einsum("ij,ij->i", self._unit(image_id)[kps],
-                                 self._unit(other_id)[other_kps]))
+        """The descriptor angles (radians) of keypoint pairs (kps[i], other_kps[i]), from
+        those keypoints' descriptors alone (a pair of large images is never searched:
+        their unit descriptors are not worth keeping)."""
+        return _angles(np.einsum("ij,ij->i", unit_descriptors(self.descriptors[image_id][kps]),
+                                 unit_descriptors(self.descriptors[other_id][other_kps])))
 
     def _unit(self, image_id: int) -> np.ndarray:
         """The image's unit_descriptors, kept for its other pairs."""
