@@ -21,6 +21,8 @@ from colmap_ext.mapper.guided_matching import compatible_features, verified_part
 from colmap_ext.mapper.model import Model, cross_norms
 from colmap_ext.mapper.filtering import has_triangulation_angle
 from colmap_ext.mapper.registration import epipolar_support
+from colmap_ext.mapper.triangulation import complete_tracks
+from colmap_ext.mapper.two_view import pair_graph
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
 from colmap_ext.synthetic.scene import ring_scene
 
@@ -288,6 +290,40 @@ def test_verified_partners_stand_in_only_where_they_match_most_keypoints(tmp_pat
     np.testing.assert_array_equal(searched[0], stood_in[0])
     np.testing.assert_array_equal(searched[1], stood_in[1])
     np.testing.assert_allclose(searched[2], stood_in[2], atol=1e-5)  # float32 cosines
+
+
+def test_track_completion_adds_the_true_observations_within_the_threshold(tmp_path) -> None:
+    """Three views of a synthetic ring (0.5 px noise) at their true poses, the true points
+    of the first two with those two observations: completing the tracks through the
+    true matches gives every point the third view sees its true keypoint there, except
+    a point moved off it by more than max_reproj_error_px."""
+    scene = ring_scene(num_images=6, seed=0)
+    points3D = scene_points(scene, 1500, seed=0)
+    truth = write_synthetic_database(tmp_path / "database.db", scene, points3D, seed=0)
+    model = Model(read_database(tmp_path / "database.db"), nearest=None)
+    triangulation = MapperOptions().triangulation
+    views = truth.image_ids[:3]
+    for view, image_id in enumerate(views):
+        model.register(image_id, scene.cams_from_world[view])
+    keypoint_of = [{p: kp for kp, p in enumerate(ids.tolist())} for ids in truth.point_ids[:3]]
+    tracked = sorted(set(keypoint_of[0]) & set(keypoint_of[1]))
+    model_point = {p: model.add_point(points3D[p], {views[0]: keypoint_of[0][p],
+                                                    views[1]: keypoint_of[1][p]})
+                   for p in tracked}
+    seen = [p for p in tracked if p in keypoint_of[2]]
+    moved = seen[0]
+    model.xyz[model_point[moved]] += 0.05
+    moved_error = model.reprojection_errors(views[2], np.array([keypoint_of[2][moved]]),
+                                            model.xyz[[model_point[moved]]])[0]
+    assert moved_error > triangulation.max_reproj_error_px
+    true_matches = {(views[v], views[2]): np.array([[keypoint_of[v][p], keypoint_of[2][p]]
+                                                    for p in keypoint_of[v] if p in keypoint_of[2]])
+                    for v in (0, 1)}
+    added = complete_tracks(model, pair_graph(true_matches), triangulation)
+    assert len(seen) > 30 and added == len(seen) - 1
+    for p in seen:
+        assert model.point_of[views[2]][keypoint_of[2][p]] == (-1 if p == moved
+                                                               else model_point[p])
 
 
 def test_epipolar_support_tells_the_true_pose_from_a_turned_one(tmp_path) -> None:

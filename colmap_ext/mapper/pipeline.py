@@ -30,7 +30,7 @@ from colmap_ext.mapper.refinement import (MatchGraphs, ModelAdjuster, refine_joi
 from colmap_ext.mapper.registration import (Correspondences, Outcome,
                                             descriptor_correspondences, register_frame,
                                             searches_descriptors, track_correspondences)
-from colmap_ext.mapper.triangulation import triangulate_image
+from colmap_ext.mapper.triangulation import complete_tracks, triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
 from colmap_ext.timing import StageTimer
@@ -244,7 +244,16 @@ class IncrementalMapper:
         self.adjuster.local_adjustment(local)
 
     def _global_adjustment(self) -> None:
+        """Adjust the whole model; where its errors look Gaussian, complete its tracks
+        from the adjusted poses (complete_tracks). There a verified match within the
+        threshold is a true observation; elsewhere the near-miss matches it would add
+        cost the real sets accuracy, and the finished model's retriangulation completes
+        the tracks within the noise's limits."""
         self.adjuster.global_adjustment()
+        if self.adjuster.errors_gaussian:
+            with self.timer("triangulation"):
+                self.timer.counts["observations completed"] += complete_tracks(
+                    self.model, self.graphs.verified, self.options.triangulation)
         self.num_images_at_global_ba = self.model.num_registered
 
 

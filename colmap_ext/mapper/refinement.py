@@ -80,6 +80,8 @@ class ModelAdjuster:
         self.timer = timer
         self.loss = ba.loss
         self.loss_scale_px = ba.loss_scale_px
+        # Whether the errors looked Gaussian before the last global adjustment.
+        self.errors_gaussian = False
 
     @classmethod
     def of(cls, model: Model, options: MapperOptions, timer: StageTimer) -> ModelAdjuster:
@@ -123,7 +125,8 @@ class ModelAdjuster:
             errors = reprojection_errors(self.model, self.model.registered)
         median = float(np.median(errors)) if len(errors) else 0.0
         self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio * median)
-        self.loss = ba.gaussian_loss if errors_look_gaussian(errors, self.filtering) else ba.loss
+        self.errors_gaussian = errors_look_gaussian(errors, self.filtering)
+        self.loss = ba.gaussian_loss if self.errors_gaussian else ba.loss
 
     def _bundle_adjust(self, image_ids: list[int], local: bool,
                        refine_intrinsics: bool = False) -> None:

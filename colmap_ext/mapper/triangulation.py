@@ -42,26 +42,60 @@ def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple
                    triangulation: TriangulationOptions) -> int:
     """Keypoints compatible with an observation of an existing point join its track
     when the point reprojects onto them (one keypoint per point, the closest)."""
-    observed_ids = model.observations(image_id)[1]
     # Every (keypoint, other image's keypoint) pair in the candidates' order, looked up
     # at once as flat indices into model.point_of_flat.
     kps = np.array([kp for kp, matches in candidates.items() for _ in matches], np.int64)
     flat = np.array([model.flat_offset[other_id] + other_kp
                      for matches in candidates.values() for other_id, other_kp in matches],
                     np.int64)
-    point_ids = model.point_of_flat[flat]
+    return _join_tracks(model, image_id, kps, model.point_of_flat[flat],
+                        triangulation.max_reproj_error_px)
+
+
+def complete_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
+                    triangulation: TriangulationOptions) -> int:
+    """Free keypoints of registered images whose verified match observes a point join
+    its track where the point reprojects onto them, as COLMAP completes tracks after an
+    adjustment: an image registered on points still moving (the first images, on the
+    initial pair's) leaves out the observations then beyond max_reproj_error_px, and
+    triangulation only looks at free keypoints. Returns the observations added."""
+    registered = model.registered
+    is_registered = np.zeros(max(model.image_ids) + 1, bool)
+    is_registered[registered] = True
+    added = 0
+    for image_id in registered:
+        pairs = [(other_id, matches) for other_id, matches in verified.get(image_id, {}).items()
+                 if is_registered[other_id]]
+        if not pairs:
+            continue
+        matches = np.concatenate([m for _, m in pairs])
+        flat = np.concatenate([m[:, 1] + model.flat_offset[other_id] for other_id, m in pairs])
+        point_ids = model.point_of_flat[flat]
+        missing = (point_ids >= 0) & (model.point_of[image_id][matches[:, 0]] < 0)
+        if missing.any():
+            added += _join_tracks(model, image_id, matches[missing, 0], point_ids[missing],
+                                  triangulation.max_reproj_error_px)
+    return added
+
+
+def _join_tracks(model: Model, image_id: int, kps: np.ndarray, point_ids: np.ndarray,
+                 max_error_px: float) -> int:
+    """Keypoints `kps` of `image_id` join the tracks of `point_ids` (pairwise) where
+    the point reprojects within `max_error_px`: one keypoint per point and one point per
+    keypoint, the closest first, and none to a point the image already observes."""
+    observed_ids = model.observations(image_id)[1]
     new_point = (point_ids >= 0) & ~np.isin(point_ids, observed_ids)
     kps, point_ids = kps[new_point], point_ids[new_point]
     if not len(kps):
         return 0
-    # Each (keypoint, point) once, the first in the candidates' order: a point seen in
+    # Each (keypoint, point) once, the first in the given order: a point seen in
     # several neighbours comes once from each, and only its first could join.
     _, first = np.unique(kps * (int(point_ids.max()) + 1) + point_ids, return_index=True)
     first.sort()
     kps, point_ids = kps[first], point_ids[first]
     observed = set(observed_ids.tolist())
     errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-    ok = errors <= triangulation.max_reproj_error_px
+    ok = errors <= max_error_px
     kps, point_ids, errors = kps[ok], point_ids[ok], errors[ok]
     added = 0
     for i in np.argsort(errors, kind="stable"):
