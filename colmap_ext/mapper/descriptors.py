@@ -223,20 +223,24 @@ class NearestDescriptors:
         kps, other_kps = pairs[:, 0], pairs[:, 1].astype(np.int64)
         pair_angles = self.pair_angles(image_id, kps, other_id, other_kps)
         num_queries = self.num_keypoints[image_id]
-
-        def candidates(found: np.ndarray, targets: np.ndarray,
-                       columns: int) -> tuple[np.ndarray, np.ndarray]:
-            index = np.zeros((num_queries, columns), np.int32)
-            angles = np.full((num_queries, columns), np.inf, np.float32)
-            if columns:
-                index[kps[found], 0] = targets
-                angles[kps[found], 0] = pair_angles[found]
-            return index, angles
-
-        index, angles = candidates(np.ones(len(kps), bool), other_kps, 1)
+        index, angles = one_candidate_each(num_queries, 1, kps, other_kps, pair_angles)
         position = np.full(self.num_keypoints[other_id], -1, np.int64)
         position[subset] = np.arange(len(subset))
         in_subset = position[other_kps] >= 0
-        sub_index, sub_angles = candidates(in_subset, position[other_kps[in_subset]],
-                                           min(k, len(subset)))
+        sub_index, sub_angles = one_candidate_each(
+            num_queries, min(k, len(subset)), kps[in_subset], position[other_kps[in_subset]],
+            pair_angles[in_subset])
         return index, angles, (sub_index, sub_angles)
+
+
+def one_candidate_each(num_rows: int, columns: int, rows: np.ndarray, targets: np.ndarray,
+                       angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Search results (index, angles), `columns` wide, that give each of `rows` its one
+    candidate `targets` at `angles` in the first column; every other place holds index 0
+    at an infinite angle, which no descriptor test passes."""
+    index = np.zeros((num_rows, columns), np.int32)
+    all_angles = np.full((num_rows, columns), np.inf, np.float32)
+    if columns:
+        index[rows, 0] = targets
+        all_angles[rows, 0] = angles
+    return index, all_angles

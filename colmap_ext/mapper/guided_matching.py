@@ -8,6 +8,7 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.geometry import sampson_angles
+from colmap_ext.mapper.descriptors import one_candidate_each
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import GuidedMatchingOptions
 
@@ -64,12 +65,10 @@ def _candidates(model: Model, image_id: int, other_id: int, kps: np.ndarray,
     at an infinite angle) with the nearest descriptors of those without one."""
     if partners is None:
         return model.nearest(image_id, other_id, kps)
-    index = np.zeros((len(kps), model.nearest.k), np.int64)
-    angles = np.full((len(kps), model.nearest.k), np.inf, np.float32)
     matched = partners >= 0
-    index[matched, 0] = partners[matched]
-    angles[matched, 0] = model.nearest.pair_angles(image_id, kps[matched], other_id,
-                                                   partners[matched])
+    index, angles = one_candidate_each(
+        len(kps), model.nearest.k, np.flatnonzero(matched), partners[matched],
+        model.nearest.pair_angles(image_id, kps[matched], other_id, partners[matched]))
     if not matched.all():
         searched_index, searched_angles = model.nearest(image_id, other_id, kps[~matched])
         columns = searched_index.shape[1]
