@@ -221,6 +221,36 @@ class Model:
         self.point_of[image_id][kp] = point_id
         self._changed.add(image_id)
 
+    def add_observations_within(self, image_id: int, kps: np.ndarray, point_ids: np.ndarray,
+                                max_error_px: float) -> int:
+        """Keypoints `kps` of `image_id` join the tracks of `point_ids` (pairwise) where
+        the point reprojects within `max_error_px`: one keypoint per point and one point
+        per keypoint, the closest first, and none to a point the image already observes.
+        Returns the observations added."""
+        observed_ids = self.observations(image_id)[1]
+        new_point = (point_ids >= 0) & ~np.isin(point_ids, observed_ids)
+        # int64: the keys below exceed int32 on large models.
+        kps, point_ids = kps[new_point].astype(np.int64), point_ids[new_point].astype(np.int64)
+        if not len(kps):
+            return 0
+        # Each (keypoint, point) once, the first in the given order (a point seen in
+        # several neighbours comes once from each).
+        _, first = np.unique(kps * (int(point_ids.max()) + 1) + point_ids, return_index=True)
+        first.sort()
+        kps, point_ids = kps[first], point_ids[first]
+        observed = set(observed_ids.tolist())
+        errors = self.reprojection_errors(image_id, kps, self.xyz[point_ids])
+        ok = errors <= max_error_px
+        kps, point_ids, errors = kps[ok], point_ids[ok], errors[ok]
+        added = 0
+        for i in np.argsort(errors, kind="stable"):
+            kp, point_id = int(kps[i]), int(point_ids[i])
+            if self.point_of[image_id][kp] < 0 and point_id not in observed:
+                self.add_observation(point_id, image_id, kp)
+                observed.add(point_id)
+                added += 1
+        return added
+
     def delete_observation(self, image_id: int, kp: int) -> None:
         """Delete keypoint `kp`'s observation; of a point's last two, the point (COLMAP's rule)."""
         point_id = int(self.point_of[image_id][kp])

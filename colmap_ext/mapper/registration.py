@@ -121,8 +121,9 @@ def register_frame(model: Model, correspondences: Correspondences,
         return Outcome.INCONSISTENT
     model.register(image_ids[0], cams_from_world[0])
     for k, image_id in enumerate(image_ids):
-        _add_inliers(model, image_id, pairs[result.inlier_mask & (camera_index == k)],
-                     registration.abs_pose_max_error_px)
+        inliers = pairs[result.inlier_mask & (camera_index == k)]
+        model.add_observations_within(image_id, inliers[:, 0], inliers[:, 1],
+                                      registration.abs_pose_max_error_px)
     return Outcome.REGISTERED
 
 
@@ -135,21 +136,6 @@ def _distinct_pairs(kps: np.ndarray, point_ids: np.ndarray) -> np.ndarray:
     num_point_ids = int(point_ids.max()) + 1
     keys = np.unique(kps.astype(np.int64) * num_point_ids + point_ids)
     return np.stack([keys // num_point_ids, keys % num_point_ids], axis=1)
-
-
-def _add_inliers(model: Model, image_id: int, inliers: np.ndarray,
-                 max_error_px: float) -> None:
-    """Add a registered image's (keypoint, point id) inliers reprojecting within
-    `max_error_px` to the tracks."""
-    kps, point_ids = inliers[:, 0], inliers[:, 1]
-    errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-    observed = set(model.observations(image_id)[1].tolist())
-    for i in np.argsort(errors, kind="stable"):
-        kp, point_id = int(kps[i]), int(point_ids[i])
-        if model.point_of[image_id][kp] < 0 and point_id not in observed \
-                and errors[i] <= max_error_px:
-            model.add_observation(point_id, image_id, kp)
-            observed.add(point_id)
 
 
 def epipolar_support(model: Model, cams_from_world: dict[int, pycolmap.Rigid3d],

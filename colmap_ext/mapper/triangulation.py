@@ -48,8 +48,8 @@ def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple
     flat = np.array([model.flat_offset[other_id] + other_kp
                      for matches in candidates.values() for other_id, other_kp in matches],
                     np.int64)
-    return _join_tracks(model, image_id, kps, model.point_of_flat[flat],
-                        triangulation.max_reproj_error_px)
+    return model.add_observations_within(image_id, kps, model.point_of_flat[flat],
+                                         triangulation.max_reproj_error_px)
 
 
 def complete_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
@@ -73,37 +73,9 @@ def complete_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
         point_ids = model.point_of_flat[flat]
         missing = (point_ids >= 0) & (model.point_of[image_id][matches[:, 0]] < 0)
         if missing.any():
-            added += _join_tracks(model, image_id, matches[missing, 0], point_ids[missing],
-                                  triangulation.max_reproj_error_px)
-    return added
-
-
-def _join_tracks(model: Model, image_id: int, kps: np.ndarray, point_ids: np.ndarray,
-                 max_error_px: float) -> int:
-    """Keypoints `kps` of `image_id` join the tracks of `point_ids` (pairwise) where
-    the point reprojects within `max_error_px`: one keypoint per point and one point per
-    keypoint, the closest first, and none to a point the image already observes."""
-    observed_ids = model.observations(image_id)[1]
-    new_point = (point_ids >= 0) & ~np.isin(point_ids, observed_ids)
-    kps, point_ids = kps[new_point], point_ids[new_point]
-    if not len(kps):
-        return 0
-    # Each (keypoint, point) once, the first in the given order: a point seen in
-    # several neighbours comes once from each, and only its first could join.
-    _, first = np.unique(kps * (int(point_ids.max()) + 1) + point_ids, return_index=True)
-    first.sort()
-    kps, point_ids = kps[first], point_ids[first]
-    observed = set(observed_ids.tolist())
-    errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-    ok = errors <= max_error_px
-    kps, point_ids, errors = kps[ok], point_ids[ok], errors[ok]
-    added = 0
-    for i in np.argsort(errors, kind="stable"):
-        kp, point_id = int(kps[i]), int(point_ids[i])
-        if model.point_of[image_id][kp] < 0 and point_id not in observed:
-            model.add_observation(point_id, image_id, kp)
-            observed.add(point_id)
-            added += 1
+            added += model.add_observations_within(image_id, matches[missing, 0],
+                                                   point_ids[missing],
+                                                   triangulation.max_reproj_error_px)
     return added
 
 
