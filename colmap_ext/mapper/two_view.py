@@ -67,8 +67,11 @@ def relative_pose(model: Model, pair: Pair, matches: np.ndarray, max_error_px: f
 
 
 def with_rays_only(model: Model, pair: Pair, matches: np.ndarray) -> np.ndarray:
-    """The matches both of whose keypoints have rays (Model.has_rays)."""
-    return matches[model.has_rays(pair[0], matches[:, 0]) & model.has_rays(pair[1], matches[:, 1])]
+    """The matches both of whose keypoints have rays (Model.has_rays): `matches` itself
+    where they all do, as they do within most camera models' images (a copy would double
+    the verified matches held: 68 MiB at 150 generator images)."""
+    keep = model.has_rays(pair[0], matches[:, 0]) & model.has_rays(pair[1], matches[:, 1])
+    return matches if keep.all() else matches[keep]
 
 
 def pair_graph(matches: dict[Pair, np.ndarray]) -> dict[int, dict[int, np.ndarray]]:
