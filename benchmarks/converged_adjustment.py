@@ -18,14 +18,10 @@ from pathlib import Path
 import numpy as np  # before pycolmap (README, "Known problem")
 import pycolmap
 
-from neutral import measure
+from neutral import LEAST_SQUARES_TO_CONVERGENCE, measure
 
 from colmap_ext.ground_truth import read_ground_truth
 from colmap_ext.mapper.bundle_adjustment import adjust_reconstruction
-from colmap_ext.mapper.options import BundleAdjustmentOptions
-
-LEAST_SQUARES_TO_CONVERGENCE = BundleAdjustmentOptions(loss="trivial", function_tolerance=0.0,
-                                                       global_max_iterations=1000)
 
 
 def main(argv: list[str] | None = None) -> int:
