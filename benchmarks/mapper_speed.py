@@ -79,14 +79,14 @@ def colmap_worker(args: argparse.Namespace) -> int:
         pycolmap.extract_features(args.database, args.images, reader_options=reader,
                                   camera_mode=pycolmap.CameraMode.SINGLE, device=pycolmap.Device.cpu)
         pycolmap.match_exhaustive(args.database, device=pycolmap.Device.cpu)
-    camera_ids, _ = fix_intrinsics_in_database(Path(args.database))
+    camera_ids, num_images = fix_intrinsics_in_database(Path(args.database))
     Path(args.output).mkdir(parents=True, exist_ok=True)
     if args.worker == "colmap_incremental":
         pycolmap.incremental_mapping(args.database, args.images, args.output,
                                      colmap_incremental_options(camera_ids, args.seed))
     else:
         pycolmap.global_mapping(args.database, args.images, args.output,
-                                colmap_global_options(args.seed))
+                                colmap_global_options(args.seed, num_images))
     return 0
 
 

@@ -34,10 +34,15 @@ def colmap_incremental_options(camera_ids: set[int], seed: int,
     return options
 
 
-def colmap_global_options(seed: int, num_threads: int = -1) -> pycolmap.GlobalPipelineOptions:
+def colmap_global_options(seed: int, num_images: int,
+                          num_threads: int = -1) -> pycolmap.GlobalPipelineOptions:
     """COLMAP's global mapper (GLOMAP) with the intrinsics and rigs held fixed: its bundle
-    adjustment is the only step of pycolmap 4.2.1's global pipeline that changes them."""
+    adjustment is the only step of pycolmap 4.2.1's global pipeline that changes them. A track
+    may span every image: the default cap of 100 views discards each track of a scene whose
+    points more than 100 images see (COLMAP's generator at 150 images: no track, no model)."""
     options = pycolmap.GlobalPipelineOptions()
+    options.mapper.track_max_num_views_per_track = max(
+        options.mapper.track_max_num_views_per_track, num_images)
     bundle_adjustment = options.mapper.bundle_adjustment
     bundle_adjustment.refine_focal_length = False
     bundle_adjustment.refine_principal_point = False

@@ -188,8 +188,8 @@ def _run_colmap_incremental(database_path: Path, image_path: Path, output_path: 
 def _run_colmap_global(database_path: Path, image_path: Path, output_path: Path, seed: int,
                        progress: bool, num_threads: int,
                        timing: StageTimer) -> list[pycolmap.Reconstruction]:
-    fix_intrinsics_in_database(database_path)
-    options = colmap_global_options(seed, num_threads)
+    _, num_images = fix_intrinsics_in_database(database_path)
+    options = colmap_global_options(seed, num_images, num_threads)
     staging = Path(tempfile.mkdtemp(prefix=".colmap-ext-global-", dir=database_path.parent))
     try:
         with quiet_colmap_logs(), timing("mapping"):

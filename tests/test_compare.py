@@ -15,6 +15,7 @@ import pytest
 from PIL import Image
 
 from colmap_ext import compare as compare_module
+from colmap_ext.colmap_mappers import colmap_global_options, fix_intrinsics_in_database
 from colmap_ext.compare import MAPPERS, compare
 from colmap_ext.errors import UserError
 from colmap_ext.evaluate import evaluate
@@ -181,6 +182,21 @@ def test_default_runs_every_mapper_including_global(compared_all, synthetic):
         for camera in pycolmap.Reconstruction(output / name / "0").cameras.values():
             np.testing.assert_array_equal(camera.params, scene.camera.params)
     assert "| colmap_global " in (output / "report.md").read_text()
+
+
+def test_colmap_global_keeps_tracks_longer_than_100_views(tmp_path):
+    """COLMAP's generator at 110 images, every point seen by every image: with GLOMAP's
+    default cap of 100 views a track, COLMAP's global mapper finds no track and no model;
+    as compare and the benchmarks set it up, it registers every image."""
+    pycolmap.set_random_seed(0)
+    options = pycolmap.SyntheticDatasetOptions(num_rigs=1, num_cameras_per_rig=1,
+                                               num_frames_per_rig=110, num_points3D=60)
+    with pycolmap.Database.open(tmp_path / "database.db") as database:
+        pycolmap.synthesize_dataset(options, database)
+    _, num_images = fix_intrinsics_in_database(tmp_path / "database.db")
+    reconstructions = pycolmap.global_mapping(tmp_path / "database.db", tmp_path, tmp_path / "out",
+                                              colmap_global_options(0, num_images))
+    assert [r.num_reg_images() for r in reconstructions.values()] == [110]
 
 
 @pytest.mark.parametrize("run", ["compared", "compared_all"])
