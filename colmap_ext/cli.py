@@ -69,6 +69,13 @@ def handle_interrupts() -> None:
             signal.signal(signum, _raise_interrupted)
 
 
+def silence_colmap_logs() -> None:
+    """No more of COLMAP's log lines (glog's level raised to FATAL), where pycolmap is loaded."""
+    pycolmap = sys.modules.get("pycolmap")
+    if pycolmap is not None:
+        pycolmap.logging.minloglevel = int(pycolmap.logging.Level.FATAL)
+
+
 class ArgumentParser(argparse.ArgumentParser):
     """argparse's parser with COLMAP's kind of error: one line and a non-zero exit (2),
     instead of the usage block and then the error."""
@@ -123,6 +130,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
+        silence_colmap_logs()  # COLMAP's threads still winding down: our line is the last
         print(f"colmap-ext: interrupted by {signal.Signals(signum).name}; no partial result "
               "was written", file=sys.stderr)
         return 128 + signum
