@@ -5,11 +5,15 @@ generator of COLMAP's mapper tests), where nothing in the data is chosen by us.
 Cases: every combination of --camera_models, --rigs (rigs x cameras per rig: 1x1 is one
 camera; the images are the rigs' frames, each rig's cameras in a calibrated rig, held fixed
 by every mapper), --sizes (images in all), --noise
-(keypoint standard deviation in pixels) and --inlier_ratios (`inlier_match_ratio`: the
+(keypoint standard deviation in pixels), --inlier_ratios (`inlier_match_ratio`: the
 share of each pair's matches that are true; the generator puts its wrong matches among
-the raw matches alone, its two-view geometries hold the true ones: what COLMAP's mappers
-read is the same at every ratio, ours also reads the raw matches where registration
-falls short), each generated once per seed of --seeds
+the raw matches alone) and --verification: "generator" keeps the generator's two-view
+geometries, which hold the true matches alone (what COLMAP's mappers read is then the same
+at every ratio; ours also reads the raw matches where registration falls short); "colmap"
+replaces them by COLMAP's own geometric verification of the raw matches
+(`pycolmap.verify_matches` on every pair, the cameras' focal lengths marked known, as a
+calibrated user's database is made), which lets the wrong matches that happen to agree
+with a pair's geometry through, as on real images. Each case is generated once per seed of --seeds
 (`pycolmap.set_random_seed` before generating and before adding noise); --num_points scene
 points, every one seen by every image, as the generator makes them.
 
@@ -34,7 +38,8 @@ better mapper (the better of the two on that seed and measure) on R_err median, 
 and AUC@1 deg.
 
     python benchmarks/neutral.py [--seeds 0-9] [--rigs 1x1,2x3] [--sizes 30,150] [--noise 0.5,1.5]
-        [--inlier_ratios 1.0,0.7,0.5] [--camera_models PINHOLE,SIMPLE_RADIAL]
+        [--inlier_ratios 1.0,0.7,0.5] [--verification generator,colmap]
+        [--camera_models PINHOLE,SIMPLE_RADIAL]
         [--mappers ours,colmap_incremental,colmap_global] [--work_dir DIR]
         [--markdown BENCHMARKS.md] [--section neutral]
 """
@@ -59,6 +64,7 @@ from accuracy import machine_line, markdown_table, update_section, versions_line
 from mapper_speed import (MAPPERS, PreparedSet, largest_model, mapper_command, timed_run,
                           write_placeholder_images)
 
+from colmap_ext.colmap_mappers import fix_intrinsics_in_database
 from colmap_ext.geometry import rotation_angles_deg
 from colmap_ext.evaluate import aligned_to_ground_truth, evaluate
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
@@ -70,6 +76,8 @@ from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
 IMAGE_SIZE = (1024, 768)
 CAMERA_PARAMS = {"PINHOLE": [1280.0, 1280.0, 512.0, 384.0],
                  "SIMPLE_RADIAL": [1280.0, 512.0, 384.0, 0.05]}
+# Whose two-view geometries the mappers read (the module's docstring).
+VERIFICATIONS = ("generator", "colmap")
 # Ours is within this fraction of COLMAP's better mapper (the issue's target).
 TOLERANCE = 0.01
 # The row of the reference (true_tracks_least_squares), measured in this process.
@@ -87,12 +95,14 @@ class Case:
     num_images: int
     noise_px: float
     inlier_ratio: float
+    verification: str  # one of VERIFICATIONS
 
     @property
     def name(self) -> str:
         rig = "" if self.rig == "1x1" else f"_rig{self.rig}"
+        verified = "" if self.verification == "generator" else f"_{self.verification}_verified"
         return (f"{self.camera_model.lower()}{rig}_{self.num_images}_noise{self.noise_px:g}"
-                f"_inliers{self.inlier_ratio:g}")
+                f"_inliers{self.inlier_ratio:g}{verified}")
 
     @property
     def rigs_and_cameras(self) -> tuple[int, int]:
@@ -123,10 +133,24 @@ def generate(case: Case, seed: int, num_points: int, folder: Path) -> PreparedSe
             reconstruction = pycolmap.synthesize_dataset(options, db)
             pycolmap.set_random_seed(seed)
             pycolmap.synthesize_noise(noise, reconstruction, db)
+        if case.verification == "colmap":
+            verify_with_colmap(database, [image.name for image in reconstruction.images.values()])
         reconstruction.write(truth)
         images.mkdir()
         write_placeholder_images(images, [image.name for image in reconstruction.images.values()])
     return PreparedSet(f"{case.name}_seed{seed}", database, images, truth, case.num_images)
+
+
+def verify_with_colmap(database: Path, image_names: list[str]) -> None:
+    """The database's two-view geometries replaced by COLMAP's geometric verification of
+    its raw matches, every pair, the focal lengths marked known (the essential matrix)."""
+    fix_intrinsics_in_database(database)
+    with pycolmap.Database.open(database) as db:
+        db.clear_two_view_geometries()
+    pairs = database.with_name("pairs.txt")
+    pairs.write_text("".join(f"{first} {second}\n"
+                             for first, second in itertools.combinations(image_names, 2)))
+    pycolmap.verify_matches(database, pairs)
 
 
 def measure(model: pycolmap.Reconstruction | None, truth: GroundTruth,
@@ -235,12 +259,13 @@ def case_rows(case: Case, per_seed: list[dict], mappers: list[str]) -> list[list
         registered = min(e["registered"] for e in entries)
         num_images = entries[0]["images"]  # a rig's frames may hold fewer than asked
         rows.append([case.camera_model, case.rig, str(case.num_images), f"{case.noise_px:g}",
-                     f"{case.inlier_ratio:g}", mapper, f"{registered}/{num_images}",
+                     f"{case.inlier_ratio:g}", case.verification, mapper, f"{registered}/{num_images}",
                      *cells[:6], cells[6], ratio, cells[7], within])
     return rows
 
 
-HEADINGS = ["camera", "rigs x cameras", "images", "noise [px]", "inlier ratio", "mapper",
+HEADINGS = ["camera", "rigs x cameras", "images", "noise [px]", "inlier ratio",
+            "two-view geometries", "mapper",
             "registered (fewest)", "R_err median [deg]", "R_err max [deg]", "AUC@1deg [%]",
             "rig kept [deg]", "points / truth",
             "observations / truth", "time [s]", "time / COLMAP inc.", "peak memory [MiB]",
@@ -255,10 +280,12 @@ def section(rows: list[list[str]], command: str, elapsed_s: float, num_points: i
         f"- inputs: `pycolmap.synthesize_dataset` (rigs of cameras, {IMAGE_SIZE[0]}x{IMAGE_SIZE[1]}, "
         f"PINHOLE {CAMERA_PARAMS['PINHOLE']} or SIMPLE_RADIAL {CAMERA_PARAMS['SIMPLE_RADIAL']}, "
         f"{num_points} points seen by every image, exhaustive matches of which the inlier ratio "
-        "are true; the wrong ones are among the raw matches alone, the verified two-view "
-        "geometries hold the true ones) and `synthesize_noise` (keypoint noise), "
+        "are true) and `synthesize_noise` (keypoint noise), "
         "`pycolmap.set_random_seed(seed)` before each; intrinsics and rigs fixed in every "
-        "mapper, mapper seed 0.",
+        "mapper, mapper seed 0. Two-view geometries: generator, the generator's, which hold "
+        "the true matches alone (its wrong matches are among the raw matches only); colmap, "
+        "COLMAP's geometric verification of the raw matches (`pycolmap.verify_matches`, focal "
+        "lengths known), which lets the wrong matches through that agree with a pair's geometry.",
         "- each mapper a whole process on its own copy of the database (as "
         "`benchmarks/mapper_speed.py`); cells: median over the seeds (worst seed). R_err: "
         "after a similarity alignment on the camera centres; AUC@1deg: relative poses of "
@@ -293,6 +320,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", default="30,150", help="images per set")
     parser.add_argument("--noise", default="0.5,1.5", help="keypoint noise, pixels")
     parser.add_argument("--inlier_ratios", default="1.0,0.7,0.5")
+    parser.add_argument("--verification", default="generator",
+                        help=f"whose two-view geometries: {', '.join(VERIFICATIONS)}")
     parser.add_argument("--camera_models", default="PINHOLE,SIMPLE_RADIAL")
     parser.add_argument("--num_points", type=int, default=800)
     parser.add_argument("--mappers", default=",".join(MAPPERS))
@@ -306,12 +335,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     mappers = [m for m in args.mappers.split(",") if m]
     camera_models = [m for m in args.camera_models.split(",") if m]
-    if not set(mappers) <= set(MAPPERS) or not set(camera_models) <= set(CAMERA_PARAMS):
+    verifications = [v for v in args.verification.split(",") if v]
+    if not set(mappers) <= set(MAPPERS) or not set(camera_models) <= set(CAMERA_PARAMS) \
+            or not set(verifications) <= set(VERIFICATIONS):
         parser.error(f"mappers from {', '.join(MAPPERS)}, camera models from "
-                     f"{', '.join(CAMERA_PARAMS)}")
+                     f"{', '.join(CAMERA_PARAMS)}, verification from {', '.join(VERIFICATIONS)}")
     cases = [Case(*values) for values in itertools.product(
         camera_models, args.rigs.split(","), parse_list(args.sizes, int), parse_list(args.noise),
-        parse_list(args.inlier_ratios))]
+        parse_list(args.inlier_ratios), verifications)]
     seeds = parse_list(args.seeds, int)
     command = "python benchmarks/neutral.py " + " ".join(argv if argv is not None else sys.argv[1:])
     start = time.perf_counter()
