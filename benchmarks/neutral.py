@@ -64,13 +64,13 @@ from accuracy import machine_line, markdown_table, update_section, versions_line
 from mapper_speed import (MAPPERS, PreparedSet, largest_model, mapper_command, timed_run,
                           write_placeholder_images)
 
-from colmap_ext.colmap_mappers import fix_intrinsics_in_database
 from colmap_ext.geometry import rotation_angles_deg
 from colmap_ext.evaluate import aligned_to_ground_truth, evaluate
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper.bundle_adjustment import adjust_reconstruction
 from colmap_ext.mapper.options import BundleAdjustmentOptions
 from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
+from colmap_ext.synthetic.pycolmap_generator import verify_with_colmap, wrong_observations
 
 # The generator's image size, and each camera model's calibrated parameters in it.
 IMAGE_SIZE = (1024, 768)
@@ -134,23 +134,11 @@ def generate(case: Case, seed: int, num_points: int, folder: Path) -> PreparedSe
             pycolmap.set_random_seed(seed)
             pycolmap.synthesize_noise(noise, reconstruction, db)
         if case.verification == "colmap":
-            verify_with_colmap(database, [image.name for image in reconstruction.images.values()])
+            verify_with_colmap(database)
         reconstruction.write(truth)
         images.mkdir()
         write_placeholder_images(images, [image.name for image in reconstruction.images.values()])
     return PreparedSet(f"{case.name}_seed{seed}", database, images, truth, case.num_images)
-
-
-def verify_with_colmap(database: Path, image_names: list[str]) -> None:
-    """The database's two-view geometries replaced by COLMAP's geometric verification of
-    its raw matches, every pair, the focal lengths marked known (the essential matrix)."""
-    fix_intrinsics_in_database(database)
-    with pycolmap.Database.open(database) as db:
-        db.clear_two_view_geometries()
-    pairs = database.with_name("pairs.txt")
-    pairs.write_text("".join(f"{first} {second}\n"
-                             for first, second in itertools.combinations(image_names, 2)))
-    pycolmap.verify_matches(database, pairs)
 
 
 def measure(model: pycolmap.Reconstruction | None, truth: GroundTruth,
@@ -171,7 +159,9 @@ def measure(model: pycolmap.Reconstruction | None, truth: GroundTruth,
             "R_err_median_deg": float(np.median(R_err)), "R_err_max_deg": float(R_err.max()),
             "AUC_1deg": report["AUC_percent"]["1"],
             "points": model.num_points3D() / truth_model.num_points3D(),
-            "observations": model.compute_num_observations() / truth_model.compute_num_observations()}
+            "observations": model.compute_num_observations() / truth_model.compute_num_observations(),
+            "wrong_percent": 100 * wrong_observations(model, truth_model)
+            / model.compute_num_observations()}
 
 
 def true_tracks_least_squares(truth_model: pycolmap.Reconstruction) -> pycolmap.Reconstruction:
@@ -214,7 +204,8 @@ def run_seed(case: Case, seed: int, mappers: list[str], num_points: int, work: P
 # Measure, direction of "worse", cell digits.
 COLUMNS = {"R_err_median_deg": (max, 4), "R_err_max_deg": (max, 4), "AUC_1deg": (min, 2),
            "rig_max_deg": (max, 6),
-           "points": (max, 2), "observations": (min, 2), "time_s": (max, 1), "peak_mib": (max, 0)}
+           "points": (max, 2), "observations": (min, 2), "wrong_percent": (max, 3),
+           "time_s": (max, 1), "peak_mib": (max, 0)}
 
 
 def median_and_worst(values: list[float], worst, digits: int) -> str:
@@ -260,7 +251,7 @@ def case_rows(case: Case, per_seed: list[dict], mappers: list[str]) -> list[list
         num_images = entries[0]["images"]  # a rig's frames may hold fewer than asked
         rows.append([case.camera_model, case.rig, str(case.num_images), f"{case.noise_px:g}",
                      f"{case.inlier_ratio:g}", case.verification, mapper, f"{registered}/{num_images}",
-                     *cells[:6], cells[6], ratio, cells[7], within])
+                     *cells[:7], cells[7], ratio, cells[8], within])
     return rows
 
 
@@ -268,7 +259,7 @@ HEADINGS = ["camera", "rigs x cameras", "images", "noise [px]", "inlier ratio",
             "two-view geometries", "mapper",
             "registered (fewest)", "R_err median [deg]", "R_err max [deg]", "AUC@1deg [%]",
             "rig kept [deg]", "points / truth",
-            "observations / truth", "time [s]", "time / COLMAP inc.", "peak memory [MiB]",
+            "observations / truth", "wrong observations [%]", "time [s]", "time / COLMAP inc.", "peak memory [MiB]",
             "within 1 % of COLMAP's better on seeds (R_err med / max / AUC@1)"]
 
 
@@ -290,7 +281,9 @@ def section(rows: list[list[str]], command: str, elapsed_s: float, num_points: i
         "`benchmarks/mapper_speed.py`); cells: median over the seeds (worst seed). R_err: "
         "after a similarity alignment on the camera centres; AUC@1deg: relative poses of "
         "image pairs, as `colmap-ext evaluate` reports it; points and observations of the "
-        "largest model over the truth's; rig kept: the largest deviation of a relative "
+        "largest model over the truth's; wrong observations: the share of the model's "
+        "observations that see another true point than most of their track; rig kept: the "
+        "largest deviation of a relative "
         "rotation between two images of one frame from the rig's (`rig_consistency`); time "
         "and peak memory of the whole process; time / COLMAP inc.: the medians' ratio (the "
         "largest ratio on one seed). "

@@ -3,10 +3,13 @@ model: a second generator, independent of ours, that COLMAP's mapper tests use."
 
 from __future__ import annotations
 
+import itertools
 from pathlib import Path
 
 import numpy as np
 import pycolmap
+
+from colmap_ext.colmap_mappers import fix_intrinsics_in_database
 
 # Intrinsics per model for 1024 x 768 images (EQUIRECTANGULAR: 1024 x 512): a focal length
 # of 500 px (a field of view of about 90 degrees across) and mild distortion.
@@ -59,6 +62,37 @@ def write_pycolmap_dataset(database_path: str | Path, camera_model: str | None, 
     finally:
         database.close()
     return truth
+
+
+def verify_with_colmap(database_path: Path) -> None:
+    """Replace the generator's two-view geometries, which hold its true matches alone, by
+    COLMAP's geometric verification of the raw matches (every pair, focal lengths marked
+    known: the essential matrix), as a calibrated user's database is made: the wrong matches
+    that agree with a pair's geometry get through, as on real images."""
+    fix_intrinsics_in_database(database_path)
+    with pycolmap.Database.open(database_path) as database:
+        database.clear_two_view_geometries()
+        names = sorted(image.name for image in database.read_all_images())
+    pairs = database_path.with_name(database_path.stem + "_pairs.txt")
+    pairs.write_text("".join(f"{first} {second}\n"
+                             for first, second in itertools.combinations(names, 2)))
+    try:
+        pycolmap.verify_matches(database_path, pairs)
+    finally:
+        pairs.unlink()
+
+
+def wrong_observations(model: pycolmap.Reconstruction, truth: pycolmap.Reconstruction) -> int:
+    """How many of the model's observations see another true point than most of their
+    track does (the generator's keypoints: the same images and indices as the truth's)."""
+    true_points = {image_id: np.array([p.point3D_id if p.has_point3D() else -1
+                                       for p in image.points2D])
+                   for image_id, image in truth.images.items()}
+    wrong = 0
+    for point in model.points3D.values():
+        seen = [true_points[e.image_id][e.point2D_idx] for e in point.track.elements]
+        wrong += len(seen) - np.unique(seen, return_counts=True)[1].max()
+    return wrong
 
 
 # A 360-degree equidistant fisheye: r = f * angle from the axis fills a frame of this size.
