@@ -121,9 +121,13 @@ class LocalExecutor(Executor):
         try:
             yield lambda args: pool.submit(function, *args)
         except BaseException:  # an error or Ctrl-C/SIGTERM: end the workers, not wait for them
-            if self.processes:
+            if isinstance(pool, ProcessPoolExecutor):
+                # A task's arguments larger than a pipe's buffer leave the pool's feeder
+                # thread blocked writing them to a worker that is now gone, and shutting
+                # down would wait for that thread for ever (CPython's ProcessPoolExecutor).
+                pool._call_queue.cancel_join_thread()
                 for worker in multiprocessing.active_children():
-                    worker.terminate()
+                    worker.kill()
             raise
         finally:  # the tasks not started are not started
             pool.shutdown(wait=True, cancel_futures=True)

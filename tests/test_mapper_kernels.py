@@ -21,7 +21,7 @@ from colmap_ext.mapper.guided_matching import compatible_features, verified_part
 from colmap_ext.mapper.model import Model, cross_norms
 from colmap_ext.mapper.filtering import has_triangulation_angle
 from colmap_ext.mapper.registration import epipolar_support
-from colmap_ext.mapper.triangulation import complete_tracks
+from colmap_ext.mapper.triangulation import complete_tracks, merge_tracks
 from colmap_ext.mapper.two_view import pair_graph
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
 from colmap_ext.synthetic.scene import ring_scene
@@ -282,14 +282,46 @@ def test_verified_partners_stand_in_only_where_they_match_most_keypoints(tmp_pat
     matches = np.column_stack([kps1, kps2])
     all_kps = np.arange(len(truth.point_ids[0]))
     assert verified_partners(model, first, all_kps, matches, guided) is None  # 10 % matched
-    partners = verified_partners(model, first, kps1, matches[:-1], guided)
-    assert (partners[:-1] == kps2[:-1]).all() and partners[-1] == -1
+    rows, others = verified_partners(model, first, kps1, matches[:-1], guided)
+    np.testing.assert_array_equal(rows, np.arange(len(kps1) - 1))
+    np.testing.assert_array_equal(others, kps2[:-1])
+    partners = rows, others
     searched = compatible_features(model, first, second, kps1, guided)
     stood_in = compatible_features(model, first, second, kps1, guided, partners)
     assert len(searched[0]) > 0.9 * len(shared)
     np.testing.assert_array_equal(searched[0], stood_in[0])
     np.testing.assert_array_equal(searched[1], stood_in[1])
     np.testing.assert_allclose(searched[2], stood_in[2], atol=1e-5)  # float32 cosines
+
+
+def test_a_wrong_verified_match_beside_the_true_one_leaves_the_true_one_a_candidate(
+        tmp_path) -> None:
+    """The same two posed views, each true match of the shared points verified together
+    with a wrong one from the same keypoint, which comes last (as one that agrees with the
+    pair's geometry by chance comes through COLMAP's verification): the true partners
+    stay candidates, and the same correspondences are found as from the true matches alone."""
+    scene = ring_scene(num_images=6, seed=0)
+    truth = write_synthetic_database(tmp_path / "database.db", scene,
+                                     scene_points(scene, 1500, seed=0), seed=0)
+    db = read_database(tmp_path / "database.db")
+    guided = MapperOptions().guided_matching
+    first, second = truth.image_ids[0], truth.image_ids[1]
+    store = NearestDescriptors(db.descriptors, sizes(db.descriptors), guided.num_neighbors,
+                               2**26, num_threads=1)
+    model = Model(db, store)
+    for view, image_id in enumerate(truth.image_ids[:2]):
+        model.register(image_id, scene.cams_from_world[view])
+    _, kps1, kps2 = np.intersect1d(truth.point_ids[0], truth.point_ids[1], return_indices=True)
+    true_matches = np.column_stack([kps1, kps2])
+    wrong_matches = np.column_stack([kps1, np.roll(kps2, 1)])
+    both = np.concatenate([true_matches, wrong_matches])
+    alone = compatible_features(model, first, second, kps1, guided,
+                                verified_partners(model, first, kps1, true_matches, guided))
+    beside = compatible_features(model, first, second, kps1, guided,
+                                 verified_partners(model, first, kps1, both, guided))
+    assert len(alone[0]) > 0.9 * len(kps1)
+    for found_alone, found_beside in zip(alone, beside):
+        np.testing.assert_array_equal(found_alone, found_beside)
 
 
 def test_track_completion_adds_the_true_observations_within_the_threshold(tmp_path) -> None:
@@ -324,6 +356,47 @@ def test_track_completion_adds_the_true_observations_within_the_threshold(tmp_pa
     for p in seen:
         assert model.point_of[views[2]][keypoint_of[2][p]] == (-1 if p == moved
                                                                else model_point[p])
+
+
+def test_track_merging_joins_the_halves_of_a_split_track(tmp_path) -> None:
+    """Four views of a synthetic ring (0.5 px noise) at their true poses, each true point
+    seen by all four split in two points (views 0-1 and views 2-3): merging through the
+    true matches joins every split point back, but a pair whose halves share a view (a
+    wrong observation in one of them; the point it belongs to keeps one half); a wrong
+    match from a point's only half to another point's joins nothing, as their joined
+    track does not reproject within max_reproj_error_px."""
+    scene = ring_scene(num_images=6, seed=0)
+    points3D = scene_points(scene, 1500, seed=0)
+    truth = write_synthetic_database(tmp_path / "database.db", scene, points3D, seed=0)
+    model = Model(read_database(tmp_path / "database.db"), nearest=None)
+    triangulation = MapperOptions().triangulation
+    views = truth.image_ids[:4]
+    for view, image_id in enumerate(views):
+        model.register(image_id, scene.cams_from_world[view])
+    keypoint_of = [{p: kp for kp, p in enumerate(ids.tolist())} for ids in truth.point_ids[:4]]
+    seen = sorted(set.intersection(*(set(k) for k in keypoint_of)))
+    halves = {p: [model.add_point(points3D[p], {views[v]: keypoint_of[v][p] for v in pair})
+                  for pair in ((0, 1), (2, 3))]
+              for p in seen}
+    conflicting, spare, lone = seen[:3]
+    model.delete_point(halves[spare][0])  # its view-1 keypoint goes to the conflicting half
+    model.add_observation(halves[conflicting][1], views[1], keypoint_of[1][spare])
+    model.delete_point(halves[lone][1])
+    matches = {(views[a], views[b]): [[keypoint_of[a][p], keypoint_of[b][p]] for p in seen]
+               for a in range(4) for b in range(a + 1, 4)}
+    # Its link comes first (the lower point ids), and its track does not reproject.
+    matches[(views[1], views[2])].append([keypoint_of[1][lone], keypoint_of[2][seen[3]]])
+    merged = merge_tracks(model, pair_graph({pair: np.array(m) for pair, m in matches.items()}),
+                          triangulation)
+    assert len(seen) >= 10 and merged == len(seen) - 3
+    for p in seen[3:]:
+        point_ids = {model.point_of[views[v]][keypoint_of[v][p]] for v in range(4)}
+        assert len(point_ids) == 1 and point_ids.pop() >= 0
+    assert model.track(halves[lone][0]) == {views[v]: keypoint_of[v][lone] for v in (0, 1)}
+    for p in (conflicting, spare):
+        assert model.point_of[views[3]][keypoint_of[3][p]] >= 0
+        assert model.point_of[views[0]][keypoint_of[0][p]] != \
+            model.point_of[views[3]][keypoint_of[3][p]]
 
 
 def test_epipolar_support_tells_the_true_pose_from_a_turned_one(tmp_path) -> None:

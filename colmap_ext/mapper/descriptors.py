@@ -214,8 +214,8 @@ class NearestDescriptors:
 
     def _matched(self, image_id: int, other_id: int, subset: np.ndarray, k: int):
         """As a search, from the database's matches of the pair: each matched keypoint's
-        one candidate, in a single column (index 0 at an infinite angle for the others);
-        within `subset`, the same in the first of k columns."""
+        nearest matched candidate, in a single column (index 0 at an infinite angle for the
+        others); within `subset`, its matched candidates there in k columns."""
         if (image_id, other_id) in self.matches:
             pairs = self.matches[(image_id, other_id)]
         else:
@@ -223,24 +223,29 @@ class NearestDescriptors:
         kps, other_kps = pairs[:, 0], pairs[:, 1].astype(np.int64)
         pair_angles = self.pair_angles(image_id, kps, other_id, other_kps)
         num_queries = self.num_keypoints[image_id]
-        index, angles = one_candidate_each(num_queries, 1, kps, other_kps, pair_angles)
+        index, angles = nearest_candidates_each(num_queries, 1, kps, other_kps, pair_angles)
         position = np.full(self.num_keypoints[other_id], -1, np.int64)
         position[subset] = np.arange(len(subset))
         in_subset = position[other_kps] >= 0
-        sub_index, sub_angles = one_candidate_each(
+        sub_index, sub_angles = nearest_candidates_each(
             num_queries, min(k, len(subset)), kps[in_subset], position[other_kps[in_subset]],
             pair_angles[in_subset])
         return index, angles, (sub_index, sub_angles)
 
 
-def one_candidate_each(num_rows: int, columns: int, rows: np.ndarray, targets: np.ndarray,
-                       angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Search results (index, angles), `columns` wide, that give each of `rows` its one
-    candidate `targets` at `angles` in the first column; every other place holds index 0
-    at an infinite angle, which no descriptor test passes."""
+def nearest_candidates_each(num_rows: int, columns: int, rows: np.ndarray, targets: np.ndarray,
+                            angles: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Search results (index, angles), `columns` wide, that give each of `rows` (a row
+    may come several times) its candidates `targets` at `angles`, nearest first, at most
+    `columns` of them; every other place holds index 0 at an infinite angle, which no
+    descriptor test passes."""
     index = np.zeros((num_rows, columns), np.int32)
     all_angles = np.full((num_rows, columns), np.inf, np.float32)
-    if columns:
-        index[rows, 0] = targets
-        all_angles[rows, 0] = angles
+    if columns and len(rows):
+        order = np.lexsort((angles, rows))
+        rows, targets, angles = rows[order], targets[order], angles[order]
+        rank = np.arange(len(rows)) - np.searchsorted(rows, rows)  # place within its row
+        kept = rank < columns
+        index[rows[kept], rank[kept]] = targets[kept]
+        all_angles[rows[kept], rank[kept]] = angles[kept]
     return index, all_angles

@@ -8,13 +8,16 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.geometry import sampson_angles
-from colmap_ext.mapper.descriptors import one_candidate_each
+from colmap_ext.mapper.descriptors import nearest_candidates_each
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import GuidedMatchingOptions
 
 
+Partners = tuple[np.ndarray, np.ndarray]  # (rows into a keypoint array, other image's keypoints)
+
+
 def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndarray,
-                        guided: GuidedMatchingOptions, partners: np.ndarray | None = None
+                        guided: GuidedMatchingOptions, partners: Partners | None = None
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """For keypoints `kps` of `image_id`, the best compatible keypoint in `other_id`.
 
@@ -23,7 +26,7 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
     line (angular Sampson error, against the threshold in pixels times the mean angle a
     pixel spans at the two keypoints). The closest such descriptor wins; each keypoint of the
     other image is used at most once. `partners` (verified_partners): a keypoint's verified
-    match is its one candidate, and only the keypoints without one are searched.
+    matches are its candidates, and only the keypoints without one are searched.
     Returns (kps, other_kps, angles).
     """
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
@@ -46,29 +49,34 @@ def compatible_features(model: Model, image_id: int, other_id: int, kps: np.ndar
 
 
 def verified_partners(model: Model, image_id: int, kps: np.ndarray, matches: np.ndarray,
-                      guided: GuidedMatchingOptions) -> np.ndarray | None:
-    """Per keypoint of `kps`, its match in a pair's verified `matches` (keypoint of
-    image_id, of the other image), -1 for none; None (search them all) unless
-    guided.skip_search_verified_share of them have one."""
-    partner = np.full(len(model.keypoints[image_id]), -1, np.int64)
-    partner[matches[:, 0]] = matches[:, 1]
-    partners = partner[kps]
-    if np.count_nonzero(partners >= 0) < guided.skip_search_verified_share * len(kps):
+                      guided: GuidedMatchingOptions) -> Partners | None:
+    """The pair's verified `matches` (keypoint of image_id, of the other image) from the
+    distinct keypoints `kps`: (rows into kps, the other image's keypoints), every match of
+    a keypoint matched more than once (a wrong match can pass verification beside the true
+    one); None (search them all) unless guided.skip_search_verified_share of kps have one."""
+    row_of = np.full(len(model.keypoints[image_id]), -1, np.int64)
+    row_of[kps] = np.arange(len(kps))
+    rows = row_of[matches[:, 0]]
+    from_kps = rows >= 0
+    rows, others = rows[from_kps], matches[from_kps, 1].astype(np.int64)
+    if len(np.unique(rows)) < guided.skip_search_verified_share * len(kps):
         return None
-    return partners
+    return rows, others
 
 
 def _candidates(model: Model, image_id: int, other_id: int, kps: np.ndarray,
-                partners: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+                partners: Partners | None) -> tuple[np.ndarray, np.ndarray]:
     """(index, angles) of the keypoints' candidates in the other image, nearest first:
-    their nearest descriptors, or their verified partners (one column, the other places
-    at an infinite angle) with the nearest descriptors of those without one."""
+    their nearest descriptors, or their verified partners (the other places at an
+    infinite angle) with the nearest descriptors of those without one."""
     if partners is None:
         return model.nearest(image_id, other_id, kps)
-    matched = partners >= 0
-    index, angles = one_candidate_each(
-        len(kps), model.nearest.k, np.flatnonzero(matched), partners[matched],
-        model.nearest.pair_angles(image_id, kps[matched], other_id, partners[matched]))
+    rows, others = partners
+    index, angles = nearest_candidates_each(
+        len(kps), model.nearest.k, rows, others,
+        model.nearest.pair_angles(image_id, kps[rows], other_id, others))
+    matched = np.zeros(len(kps), bool)
+    matched[rows] = True
     if not matched.all():
         searched_index, searched_angles = model.nearest(image_id, other_id, kps[~matched])
         columns = searched_index.shape[1]

@@ -24,13 +24,13 @@ from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.filtering import filter_images, filter_points
+from colmap_ext.mapper.filtering import error_limit, filter_images, filter_points
 from colmap_ext.mapper.refinement import (MatchGraphs, ModelAdjuster, refine_joined,
                                           retriangulate, triangulate_images)
 from colmap_ext.mapper.registration import (Correspondences, Outcome,
                                             descriptor_correspondences, register_frame,
                                             searches_descriptors, track_correspondences)
-from colmap_ext.mapper.triangulation import complete_tracks, triangulate_image
+from colmap_ext.mapper.triangulation import complete_tracks, merge_tracks, triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
 from colmap_ext.timing import StageTimer
@@ -244,16 +244,24 @@ class IncrementalMapper:
         self.adjuster.local_adjustment(local)
 
     def _global_adjustment(self) -> None:
-        """Adjust the whole model; where its errors look Gaussian, complete its tracks
-        from the adjusted poses (complete_tracks). There a verified match within the
-        threshold is a true observation; elsewhere the near-miss matches it would add
-        cost the real sets accuracy, and the finished model's retriangulation completes
-        the tracks within the noise's limits."""
+        """Adjust the whole model; where its errors look Gaussian, complete and merge its
+        tracks from the adjusted poses (complete_tracks; merge_tracks, whose joined tracks
+        reproject within the noise's limit, filtering.error_limit: a long track crosses a
+        fixed threshold by noise alone). There a verified match within the threshold is a
+        true observation; elsewhere the near-miss matches they would add cost the real
+        sets accuracy, and the finished model's retriangulation completes the tracks
+        within the noise's limits."""
         self.adjuster.global_adjustment()
         if self.adjuster.errors_gaussian:
+            triangulation = self.options.triangulation
+            within_noise = dataclasses.replace(triangulation, max_reproj_error_px=error_limit(
+                triangulation.max_reproj_error_px, self.adjuster.median_error_px,
+                self.options.filtering.noise_max_error_ratio))
             with self.timer("triangulation"):
                 self.timer.counts["observations completed"] += complete_tracks(
-                    self.model, self.graphs.verified, self.options.triangulation)
+                    self.model, self.graphs.verified, triangulation)
+                self.timer.counts["points merged"] += merge_tracks(
+                    self.model, self.graphs.verified, within_noise)
         self.num_images_at_global_ba = self.model.num_registered
 
 

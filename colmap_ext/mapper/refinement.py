@@ -18,7 +18,7 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (BundleAdjustmentOptions, FilteringOptions,
                                        GuidedMatchingOptions, MapperOptions,
                                        TriangulationOptions)
-from colmap_ext.mapper.triangulation import triangulate_image
+from colmap_ext.mapper.triangulation import merge_tracks, triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph
 from colmap_ext.timing import StageTimer
 
@@ -80,8 +80,9 @@ class ModelAdjuster:
         self.timer = timer
         self.loss = ba.loss
         self.loss_scale_px = ba.loss_scale_px
-        # Whether the errors looked Gaussian before the last global adjustment.
+        # Whether the errors looked Gaussian before the last global adjustment, and their median.
         self.errors_gaussian = False
+        self.median_error_px = 0.0
 
     @classmethod
     def of(cls, model: Model, options: MapperOptions, timer: StageTimer) -> ModelAdjuster:
@@ -124,6 +125,7 @@ class ModelAdjuster:
         with self.timer("filtering"):
             errors = reprojection_errors(self.model, self.model.registered)
         median = float(np.median(errors)) if len(errors) else 0.0
+        self.median_error_px = median
         self.loss_scale_px = max(ba.loss_scale_px, ba.noise_loss_scale_ratio * median)
         self.errors_gaussian = errors_look_gaussian(errors, self.filtering)
         self.loss = ba.gaussian_loss if self.errors_gaussian else ba.loss
@@ -184,6 +186,8 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
             model.delete_point(point_id)
         triangulate_images(model, model.registration_order, graphs, options.guided_matching,
                            strict)
+        if gaussian:  # the tracks the noise split again, as during growth
+            timer.counts["points merged"] += merge_tracks(model, graphs.verified, strict)
     with timer("filtering"):
         # The points the final filter would drop anyway (two-view tracks, narrow
         # angles) go first: the adjustment then solves the model's size, not twice it.

@@ -79,6 +79,44 @@ def complete_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
     return added
 
 
+def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
+                 triangulation: TriangulationOptions) -> int:
+    """Points that a verified match links (a keypoint of one matched to a keypoint of the
+    other) become one point where their joined track, triangulated again, reprojects
+    within max_reproj_error_px in every image, as COLMAP merges tracks after an
+    adjustment: the first observations of a point still off by more than the threshold
+    leave the next image's keypoint free, and it starts a second point of the same track.
+    Tracks that share an image are not joined; a point joins one other point per call.
+    Returns the points merged into others."""
+    links: set[tuple[int, int]] = set()
+    for image_id in model.registered:
+        for other_id, matches in verified.get(image_id, {}).items():
+            if other_id < image_id or not model.is_registered(other_id):
+                continue
+            first = model.point_of[image_id][matches[:, 0]]
+            second = model.point_of[other_id][matches[:, 1]]
+            linked = (first >= 0) & (second >= 0) & (first != second)
+            links.update(zip(np.minimum(first, second)[linked].tolist(),
+                             np.maximum(first, second)[linked].tolist()))
+    pairs, tracks = [], []
+    for first, second in sorted(links):
+        track, other_track = model.track(first), model.track(second)
+        if not track.keys() & other_track.keys():
+            pairs.append((first, second))
+            tracks.append({**track, **other_track})
+    if not tracks:
+        return 0
+    xyz, ok = triangulate_points(model, tracks, triangulation)
+    merged: set[int] = set()
+    for (first, second), track, point, keep in zip(pairs, tracks, xyz, ok):
+        if keep and first not in merged and second not in merged:
+            model.delete_point(first)
+            model.delete_point(second)
+            model.add_point(point, track)
+            merged.update((first, second))
+    return len(merged) // 2
+
+
 def _create_points(model: Model, image_id: int, candidates: dict[int, list[tuple[int, int]]],
                    triangulation: TriangulationOptions, min_views: int) -> int:
     """Free keypoints with free compatible features in enough images become points,
