@@ -214,7 +214,8 @@ def test_retriangulation_only_where_matches_disagree_with_tracks(tmp_path, monke
     timer = StageTimer()
     model = reconstruct(db, MapperOptions(seed=0), timer=timer, progress=False)[0]
     assert (timer.counts["retriangulations left out"] == 1) == left_out
-    monkeypatch.setattr(refinement, "points_off_matches", lambda model, matches: model.point_ids)
+    monkeypatch.setattr(refinement, "points_off_matches",
+                        lambda model, matches, max_error_px: model.point_ids)
     every_point = reconstruct(db, MapperOptions(seed=0), progress=False)[0]
     assert model.num_points3D() == every_point.num_points3D()
     assert abs(model.compute_num_observations() - every_point.compute_num_observations()) <= \

@@ -171,15 +171,15 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     triangulation = options.triangulation
     errors = reprojection_errors(model, registered)
     gaussian = errors_look_gaussian(errors, options.filtering)
-    point_ids = points_off_matches(model, matches) if gaussian else model.point_ids
-    if gaussian and not point_ids:
-        timer.counts["retriangulations left out"] += 1
-        return model.reconstruction.num_points3D()
-    graphs = MatchGraphs.of(model, matches)
     limit = error_limit(triangulation.max_reproj_error_px,
                         float(np.median(errors)) if len(errors) else np.inf,
                         options.filtering.noise_max_error_ratio,
                         0.0 if gaussian else triangulation.retriangulation_max_error_ratio)
+    point_ids = points_off_matches(model, matches, limit) if gaussian else model.point_ids
+    if gaussian and not point_ids:
+        timer.counts["retriangulations left out"] += 1
+        return model.reconstruction.num_points3D()
+    graphs = MatchGraphs.of(model, matches)
     strict = dataclasses.replace(triangulation, max_reproj_error_px=limit)
     with timer("triangulation"):
         for point_id in point_ids:
@@ -197,15 +197,26 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     return model.reconstruction.num_points3D()
 
 
-def points_off_matches(model: Model, matches: dict[Pair, np.ndarray]) -> list[int]:
+def points_off_matches(model: Model, matches: dict[Pair, np.ndarray],
+                       max_error_px: float) -> list[int]:
     """The points of the verified matches between the model's registered images whose
-    two keypoints are not observations of one point (split tracks, missing observations)."""
+    two keypoints are not observations of one point (split tracks, missing observations),
+    where one keypoint's point reprojects within `max_error_px` onto the other keypoint:
+    a wrong match that got through verification links points apart, or a point and a
+    keypoint of another, and no triangulation joins them."""
     point_ids = []
     for (image_id1, image_id2), pair_matches in matches.items():
         if model.is_registered(image_id1) and model.is_registered(image_id2):
             points1 = model.point_of[image_id1][pair_matches[:, 0]]
             points2 = model.point_of[image_id2][pair_matches[:, 1]]
-            off = points1 != points2
+            off = np.flatnonzero(points1 != points2)
+            near = np.zeros(len(off), bool)
+            for points, image_id, kps in ((points1, image_id2, pair_matches[off, 1]),
+                                          (points2, image_id1, pair_matches[off, 0])):
+                has = points[off] >= 0
+                near[has] |= model.reprojection_errors(
+                    image_id, kps[has], model.xyz[points[off][has]]) <= max_error_px
+            off = off[near]
             point_ids += [points1[off], points2[off]]
     point_ids = np.unique(np.concatenate(point_ids)) if point_ids else np.zeros(0, np.int64)
     return point_ids[point_ids >= 0].tolist()

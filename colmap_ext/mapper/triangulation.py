@@ -86,18 +86,38 @@ def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
     within max_reproj_error_px in every image, as COLMAP merges tracks after an
     adjustment: the first observations of a point still off by more than the threshold
     leave the next image's keypoint free, and it starts a second point of the same track.
-    Tracks that share an image are not joined; a point joins one other point per call.
-    Returns the points merged into others."""
-    links: set[tuple[int, int]] = set()
+    Only links where one of the two points reprojects within the threshold onto the other's
+    keypoint are tried (a wrong match links points apart); tracks that share an image are
+    not joined; a point joins one other point per call. Returns the points merged into
+    others."""
+    firsts, seconds = [], []
+    # Per image, (its keypoints, the linked points to reproject onto them, link indices).
+    queries: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+    num_links = 0
     for image_id in model.registered:
         for other_id, matches in verified.get(image_id, {}).items():
             if other_id < image_id or not model.is_registered(other_id):
                 continue
             first = model.point_of[image_id][matches[:, 0]]
             second = model.point_of[other_id][matches[:, 1]]
-            linked = (first >= 0) & (second >= 0) & (first != second)
-            links.update(zip(np.minimum(first, second)[linked].tolist(),
-                             np.maximum(first, second)[linked].tolist()))
+            linked = np.flatnonzero((first >= 0) & (second >= 0) & (first != second))
+            if not len(linked):
+                continue
+            index = np.arange(num_links, num_links + len(linked))
+            num_links += len(linked)
+            firsts.append(first[linked])
+            seconds.append(second[linked])
+            queries.setdefault(other_id, []).append((matches[linked, 1], first[linked], index))
+            queries.setdefault(image_id, []).append((matches[linked, 0], second[linked], index))
+    if not num_links:
+        return 0
+    near = np.zeros(num_links, bool)
+    for image_id, parts in queries.items():
+        kps, point_ids, index = (np.concatenate(part) for part in zip(*parts))
+        errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
+        near[index[errors <= triangulation.max_reproj_error_px]] = True
+    first, second = np.concatenate(firsts)[near], np.concatenate(seconds)[near]
+    links = set(zip(np.minimum(first, second).tolist(), np.maximum(first, second).tolist()))
     pairs, tracks = [], []
     for first, second in sorted(links):
         track, other_track = model.track(first), model.track(second)
