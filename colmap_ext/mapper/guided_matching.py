@@ -59,7 +59,8 @@ def verified_partners(model: Model, image_id: int, kps: np.ndarray, matches: np.
     rows = row_of[matches[:, 0]]
     from_kps = rows >= 0
     rows, others = rows[from_kps], matches[from_kps, 1].astype(np.int64)
-    if len(np.unique(rows)) < guided.skip_search_verified_share * len(kps):
+    if np.count_nonzero(np.bincount(rows, minlength=len(kps))) < \
+            guided.skip_search_verified_share * len(kps):
         return None
     return rows, others
 

@@ -201,7 +201,7 @@ def points_off_matches(model: Model, matches: dict[Pair, np.ndarray],
                        max_error_px: float) -> list[int]:
     """The points of the verified matches between the model's registered images whose
     two keypoints are not observations of one point (split tracks, missing observations),
-    where one keypoint's point reprojects within `max_error_px` onto the other keypoint:
+    where each keypoint's point reprojects within `max_error_px` onto the other keypoint:
     a wrong match that got through verification links points apart, or a point and a
     keypoint of another, and no triangulation joins them."""
     point_ids = []
@@ -210,11 +210,13 @@ def points_off_matches(model: Model, matches: dict[Pair, np.ndarray],
             points1 = model.point_of[image_id1][pair_matches[:, 0]]
             points2 = model.point_of[image_id2][pair_matches[:, 1]]
             off = np.flatnonzero(points1 != points2)
-            near = np.zeros(len(off), bool)
+            if not len(off):
+                continue
+            near = np.ones(len(off), bool)
             for points, image_id, kps in ((points1, image_id2, pair_matches[off, 1]),
                                           (points2, image_id1, pair_matches[off, 0])):
                 has = points[off] >= 0
-                near[has] |= model.reprojection_errors(
+                near[has] &= model.reprojection_errors(
                     image_id, kps[has], model.xyz[points[off][has]]) <= max_error_px
             off = off[near]
             point_ids += [points1[off], points2[off]]

@@ -95,20 +95,30 @@ def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
     queries: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
     num_links = 0
     for image_id in model.registered:
-        for other_id, matches in verified.get(image_id, {}).items():
-            if other_id < image_id or not model.is_registered(other_id):
-                continue
-            first = model.point_of[image_id][matches[:, 0]]
-            second = model.point_of[other_id][matches[:, 1]]
-            linked = np.flatnonzero((first >= 0) & (second >= 0) & (first != second))
-            if not len(linked):
-                continue
-            index = np.arange(num_links, num_links + len(linked))
-            num_links += len(linked)
-            firsts.append(first[linked])
-            seconds.append(second[linked])
-            queries.setdefault(other_id, []).append((matches[linked, 1], first[linked], index))
-            queries.setdefault(image_id, []).append((matches[linked, 0], second[linked], index))
+        pairs = [(other_id, matches) for other_id, matches in verified.get(image_id, {}).items()
+                 if other_id > image_id and model.is_registered(other_id)]
+        if not pairs:
+            continue
+        # All the image's pairs at once; the few links then pair by pair.
+        first = model.point_of[image_id][np.concatenate([m[:, 0] for _, m in pairs])]
+        second = model.point_of_flat[np.concatenate([m[:, 1] + model.flat_offset[other_id]
+                                                     for other_id, m in pairs])]
+        linked = (first >= 0) & (second >= 0) & (first != second)
+        if not linked.any():
+            continue
+        start = 0
+        for other_id, matches in pairs:
+            end = start + len(matches)
+            in_pair = np.flatnonzero(linked[start:end])
+            if len(in_pair):
+                index = np.arange(num_links, num_links + len(in_pair))
+                num_links += len(in_pair)
+                pair_first, pair_second = first[start:end][in_pair], second[start:end][in_pair]
+                firsts.append(pair_first)
+                seconds.append(pair_second)
+                queries.setdefault(other_id, []).append((matches[in_pair, 1], pair_first, index))
+                queries.setdefault(image_id, []).append((matches[in_pair, 0], pair_second, index))
+            start = end
     if not num_links:
         return 0
     near = np.zeros(num_links, bool)
