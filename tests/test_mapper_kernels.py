@@ -237,23 +237,29 @@ def test_triangulation_angle_filter_agrees_with_every_pair(seed: int) -> None:
         assert (decided == (widest >= threshold)).all(), threshold
 
 
-def test_guided_matching_finds_the_true_correspondences(tmp_path) -> None:
-    """Two posed views of a synthetic ring (0.5 px noise): the compatible features of
-    every keypoint of one in the other are the true correspondences, nearly all of them."""
+def two_posed_views(folder: Path, num_threads: int = 1):
+    """The first two views of a synthetic ring (0.5 px noise) registered at their true
+    poses, with a descriptor store: (model, truth, first image id, second image id)."""
     scene = ring_scene(num_images=6, seed=0)
-    truth = write_synthetic_database(tmp_path / "database.db", scene,
+    truth = write_synthetic_database(folder / "database.db", scene,
                                      scene_points(scene, 1500, seed=0), seed=0)
-    db = read_database(tmp_path / "database.db")
-    options = MapperOptions()
-    first, second = truth.image_ids[0], truth.image_ids[1]
+    db = read_database(folder / "database.db")
     store = NearestDescriptors(db.descriptors, sizes(db.descriptors),
-                               options.guided_matching.num_neighbors, 2**26, num_threads=2)
+                               MapperOptions().guided_matching.num_neighbors, 2**26,
+                               num_threads=num_threads)
     model = Model(db, store)
     for view, image_id in enumerate(truth.image_ids[:2]):
         model.register(image_id, scene.cams_from_world[view])
+    return model, truth, truth.image_ids[0], truth.image_ids[1]
+
+
+def test_guided_matching_finds_the_true_correspondences(tmp_path) -> None:
+    """Two posed views of a synthetic ring (0.5 px noise): the compatible features of
+    every keypoint of one in the other are the true correspondences, nearly all of them."""
+    model, truth, first, second = two_posed_views(tmp_path, num_threads=2)
     all_kps = np.arange(len(truth.point_ids[0]))
     kps, other_kps, _ = compatible_features(model, first, second, all_kps,
-                                            options.guided_matching)
+                                            MapperOptions().guided_matching)
     shared = len(np.intersect1d(truth.point_ids[0], truth.point_ids[1]))
     correct = truth.point_ids[0][kps] == truth.point_ids[1][other_kps]
     # Measured: every one correct, every shared point found (scene seeds 0-2, 140-166 points).
@@ -266,17 +272,8 @@ def test_verified_partners_stand_in_only_where_they_match_most_keypoints(tmp_pat
     in for the search (one candidate each, the other keypoints searched) where they
     cover skip_search_verified_share of the keypoints asked about, and give the search's
     correspondences; below that share, the keypoints are searched."""
-    scene = ring_scene(num_images=6, seed=0)
-    truth = write_synthetic_database(tmp_path / "database.db", scene,
-                                     scene_points(scene, 1500, seed=0), seed=0)
-    db = read_database(tmp_path / "database.db")
+    model, truth, first, second = two_posed_views(tmp_path)
     guided = MapperOptions().guided_matching
-    first, second = truth.image_ids[0], truth.image_ids[1]
-    store = NearestDescriptors(db.descriptors, sizes(db.descriptors), guided.num_neighbors,
-                               2**26, num_threads=1)
-    model = Model(db, store)
-    for view, image_id in enumerate(truth.image_ids[:2]):
-        model.register(image_id, scene.cams_from_world[view])
     shared, kps1, kps2 = np.intersect1d(truth.point_ids[0], truth.point_ids[1],
                                         return_indices=True)
     matches = np.column_stack([kps1, kps2])
@@ -300,17 +297,8 @@ def test_a_wrong_verified_match_beside_the_true_one_leaves_the_true_one_a_candid
     with a wrong one from the same keypoint, which comes last (as one that agrees with the
     pair's geometry by chance comes through COLMAP's verification): the true partners
     stay candidates, and the same correspondences are found as from the true matches alone."""
-    scene = ring_scene(num_images=6, seed=0)
-    truth = write_synthetic_database(tmp_path / "database.db", scene,
-                                     scene_points(scene, 1500, seed=0), seed=0)
-    db = read_database(tmp_path / "database.db")
+    model, truth, first, second = two_posed_views(tmp_path)
     guided = MapperOptions().guided_matching
-    first, second = truth.image_ids[0], truth.image_ids[1]
-    store = NearestDescriptors(db.descriptors, sizes(db.descriptors), guided.num_neighbors,
-                               2**26, num_threads=1)
-    model = Model(db, store)
-    for view, image_id in enumerate(truth.image_ids[:2]):
-        model.register(image_id, scene.cams_from_world[view])
     _, kps1, kps2 = np.intersect1d(truth.point_ids[0], truth.point_ids[1], return_indices=True)
     true_matches = np.column_stack([kps1, kps2])
     wrong_matches = np.column_stack([kps1, np.roll(kps2, 1)])
@@ -324,20 +312,29 @@ def test_a_wrong_verified_match_beside_the_true_one_leaves_the_true_one_a_candid
         np.testing.assert_array_equal(found_alone, found_beside)
 
 
+def posed_views_without_points(folder: Path, num_views: int):
+    """The first views of a synthetic ring (0.5 px noise) registered at their true poses,
+    no point yet: (model, the true points, the views' image ids, per view its keypoint of
+    each true point it sees)."""
+    scene = ring_scene(num_images=6, seed=0)
+    points3D = scene_points(scene, 1500, seed=0)
+    truth = write_synthetic_database(folder / "database.db", scene, points3D, seed=0)
+    model = Model(read_database(folder / "database.db"), nearest=None)
+    views = truth.image_ids[:num_views]
+    for view, image_id in enumerate(views):
+        model.register(image_id, scene.cams_from_world[view])
+    keypoint_of = [{p: kp for kp, p in enumerate(ids.tolist())}
+                   for ids in truth.point_ids[:num_views]]
+    return model, points3D, views, keypoint_of
+
+
 def test_track_completion_adds_the_true_observations_within_the_threshold(tmp_path) -> None:
     """Three views of a synthetic ring (0.5 px noise) at their true poses, the true points
     of the first two with those two observations: completing the tracks through the
     true matches gives every point the third view sees its true keypoint there, except
     a point moved off it by more than max_reproj_error_px."""
-    scene = ring_scene(num_images=6, seed=0)
-    points3D = scene_points(scene, 1500, seed=0)
-    truth = write_synthetic_database(tmp_path / "database.db", scene, points3D, seed=0)
-    model = Model(read_database(tmp_path / "database.db"), nearest=None)
+    model, points3D, views, keypoint_of = posed_views_without_points(tmp_path, 3)
     triangulation = MapperOptions().triangulation
-    views = truth.image_ids[:3]
-    for view, image_id in enumerate(views):
-        model.register(image_id, scene.cams_from_world[view])
-    keypoint_of = [{p: kp for kp, p in enumerate(ids.tolist())} for ids in truth.point_ids[:3]]
     tracked = sorted(set(keypoint_of[0]) & set(keypoint_of[1]))
     model_point = {p: model.add_point(points3D[p], {views[0]: keypoint_of[0][p],
                                                     views[1]: keypoint_of[1][p]})
@@ -365,15 +362,8 @@ def test_track_merging_joins_the_halves_of_a_split_track(tmp_path) -> None:
     wrong observation in one of them; the point it belongs to keeps one half); a wrong
     match from a point's only half to another point's joins nothing, as their joined
     track does not reproject within max_reproj_error_px."""
-    scene = ring_scene(num_images=6, seed=0)
-    points3D = scene_points(scene, 1500, seed=0)
-    truth = write_synthetic_database(tmp_path / "database.db", scene, points3D, seed=0)
-    model = Model(read_database(tmp_path / "database.db"), nearest=None)
+    model, points3D, views, keypoint_of = posed_views_without_points(tmp_path, 4)
     triangulation = MapperOptions().triangulation
-    views = truth.image_ids[:4]
-    for view, image_id in enumerate(views):
-        model.register(image_id, scene.cams_from_world[view])
-    keypoint_of = [{p: kp for kp, p in enumerate(ids.tolist())} for ids in truth.point_ids[:4]]
     seen = sorted(set.intersection(*(set(k) for k in keypoint_of)))
     halves = {p: [model.add_point(points3D[p], {views[v]: keypoint_of[v][p] for v in pair})
                   for pair in ((0, 1), (2, 3))]
