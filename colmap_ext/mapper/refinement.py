@@ -18,7 +18,7 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (BundleAdjustmentOptions, FilteringOptions,
                                        GuidedMatchingOptions, MapperOptions,
                                        TriangulationOptions)
-from colmap_ext.mapper.triangulation import merge_tracks, triangulate_image
+from colmap_ext.mapper.triangulation import merge_tracks, track_links, triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph
 from colmap_ext.timing import StageTimer
 
@@ -201,24 +201,10 @@ def points_off_matches(model: Model, matches: dict[Pair, np.ndarray],
                        max_error_px: float) -> list[int]:
     """The points of the verified matches between the model's registered images whose
     two keypoints are not observations of one point (split tracks, missing observations),
-    where each keypoint's point reprojects within `max_error_px` onto the other keypoint:
-    a wrong match that got through verification links points apart, or a point and a
-    keypoint of another, and no triangulation joins them."""
-    point_ids = []
-    for (image_id1, image_id2), pair_matches in matches.items():
-        if model.is_registered(image_id1) and model.is_registered(image_id2):
-            points1 = model.point_of[image_id1][pair_matches[:, 0]]
-            points2 = model.point_of[image_id2][pair_matches[:, 1]]
-            off = np.flatnonzero(points1 != points2)
-            if not len(off):
-                continue
-            near = np.ones(len(off), bool)
-            for points, image_id, kps in ((points1, image_id2, pair_matches[off, 1]),
-                                          (points2, image_id1, pair_matches[off, 0])):
-                has = points[off] >= 0
-                near[has] &= model.reprojection_errors(
-                    image_id, kps[has], model.xyz[points[off][has]]) <= max_error_px
-            off = off[near]
-            point_ids += [points1[off], points2[off]]
-    point_ids = np.unique(np.concatenate(point_ids)) if point_ids else np.zeros(0, np.int64)
+    where each keypoint's point reprojects within `max_error_px` onto the other keypoint
+    (track_links): a wrong match that got through verification links points apart, or a
+    point and a keypoint of another, and no triangulation joins them."""
+    links = track_links(model, pair_graph(matches), max_error_px)
+    near = (links.first_near | (links.first < 0)) & (links.second_near | (links.second < 0))
+    point_ids = np.unique(np.concatenate([links.first[near], links.second[near]]))
     return point_ids[point_ids >= 0].tolist()

@@ -3,6 +3,8 @@ an existing point's track or, seen in enough images, become a new point."""
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import pycolmap
 
@@ -79,19 +81,27 @@ def complete_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
     return added
 
 
-def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
-                 triangulation: TriangulationOptions) -> int:
-    """Points that a verified match links (a keypoint of one matched to a keypoint of the
-    other) become one point where their joined track, triangulated again, reprojects
-    within max_reproj_error_px in every image, as COLMAP merges tracks after an
-    adjustment: the first observations of a point still off by more than the threshold
-    leave the next image's keypoint free, and it starts a second point of the same track.
-    Only links where one of the two points reprojects within the threshold onto the other's
-    keypoint are tried (a wrong match links points apart); tracks that share an image are
-    not joined; a point joins one other point per call. Returns the points merged into
-    others."""
+@dataclass
+class TrackLinks:
+    """Verified matches between registered images whose two keypoints are not
+    observations of one point: each side's point (-1 where its keypoint is free), and
+    whether it reprojects within the limit onto the other side's keypoint (False where
+    free). A true match across a split track has a point near on one side at least; a
+    wrong match that got through verification links points apart."""
+
+    first: np.ndarray
+    second: np.ndarray
+    first_near: np.ndarray
+    second_near: np.ndarray
+
+
+def track_links(model: Model, verified: dict[int, dict[int, np.ndarray]],
+                max_error_px: float) -> TrackLinks:
+    """The TrackLinks of the verified matches between the model's registered images, with
+    one reprojection per image."""
     firsts, seconds = [], []
-    # Per image, (its keypoints, the linked points to reproject onto them, link indices).
+    # Per image, (its keypoints, the linked points to reproject onto them, and where the
+    # answers go: 2 x the link's index, + 1 for second_near).
     queries: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
     num_links = 0
     for image_id in model.registered:
@@ -103,9 +113,7 @@ def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
         first = model.point_of[image_id][np.concatenate([m[:, 0] for _, m in pairs])]
         second = model.point_of_flat[np.concatenate([m[:, 1] + model.flat_offset[other_id]
                                                      for other_id, m in pairs])]
-        linked = (first >= 0) & (second >= 0) & (first != second)
-        if not linked.any():
-            continue
+        linked = first != second
         start = 0
         for other_id, matches in pairs:
             end = start + len(matches)
@@ -116,20 +124,41 @@ def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
                 pair_first, pair_second = first[start:end][in_pair], second[start:end][in_pair]
                 firsts.append(pair_first)
                 seconds.append(pair_second)
-                queries.setdefault(other_id, []).append((matches[in_pair, 1], pair_first, index))
-                queries.setdefault(image_id, []).append((matches[in_pair, 0], pair_second, index))
+                for kps, point_ids, query_id, target in (
+                        (matches[in_pair, 1], pair_first, other_id, 2 * index),
+                        (matches[in_pair, 0], pair_second, image_id, 2 * index + 1)):
+                    has = point_ids >= 0
+                    queries.setdefault(query_id, []).append(
+                        (kps[has], point_ids[has], target[has]))
             start = end
-    if not num_links:
-        return 0
-    near = np.zeros(num_links, bool)
+    near = np.zeros(2 * num_links, bool)
     for image_id, parts in queries.items():
-        kps, point_ids, index = (np.concatenate(part) for part in zip(*parts))
+        kps, point_ids, target = (np.concatenate(part) for part in zip(*parts))
         errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
-        near[index[errors <= triangulation.max_reproj_error_px]] = True
-    first, second = np.concatenate(firsts)[near], np.concatenate(seconds)[near]
-    links = set(zip(np.minimum(first, second).tolist(), np.maximum(first, second).tolist()))
+        near[target[errors <= max_error_px]] = True
+    empty = np.zeros(0, np.int64)
+    return TrackLinks(np.concatenate(firsts) if firsts else empty,
+                      np.concatenate(seconds) if seconds else empty, near[0::2], near[1::2])
+
+
+def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
+                 triangulation: TriangulationOptions) -> int:
+    """Points that a verified match links (a keypoint of one matched to a keypoint of the
+    other) become one point where their joined track, triangulated again, reprojects
+    within max_reproj_error_px in every image, as COLMAP merges tracks after an
+    adjustment: the first observations of a point still off by more than the threshold
+    leave the next image's keypoint free, and it starts a second point of the same track.
+    Only links where one of the two points reprojects within the threshold onto the other's
+    keypoint are tried (track_links); tracks that share an image are not joined; a point
+    joins one other point per call. Returns the points merged into others."""
+    links = track_links(model, verified, triangulation.max_reproj_error_px)
+    tried = ((links.first >= 0) & (links.second >= 0)
+             & (links.first_near | links.second_near))
+    first, second = links.first[tried], links.second[tried]
+    linked_points = set(zip(np.minimum(first, second).tolist(),
+                            np.maximum(first, second).tolist()))
     pairs, tracks = [], []
-    for first, second in sorted(links):
+    for first, second in sorted(linked_points):
         track, other_track = model.track(first), model.track(second)
         if not track.keys() & other_track.keys():
             pairs.append((first, second))
