@@ -201,8 +201,8 @@ def test_retriangulation_only_where_matches_disagree_with_tracks(tmp_path, monke
     """Errors that look Gaussian: the finished model's points are triangulated again only
     where verified matches disagree with its tracks (refinement.points_off_matches). At
     0.5 px, none on seed 0 (retriangulation left out: the tracks were completed after
-    each adjustment); at 0.8 px, 6 of 300 on seed 1; at 1.5 px the noise split most
-    tracks (255). Each time the model is the one a retriangulation of every point gives:
+    each adjustment); at 0.8 px, 6 of 300 on seed 1; at 1.5 px the noise split many
+    tracks (132 points). Each time the model is the one a retriangulation of every point gives:
     the same points, but for an observation or two the same observations (at 1.5 px a
     merged track's point starts elsewhere and an observation at the limit goes the other
     way: poses up to 0.008 deg apart, measured on seeds 0-2, against errors of 0.04-0.13

@@ -20,6 +20,7 @@ from colmap_ext.mapper.descriptors import NearestDescriptors, nearest_descriptor
 from colmap_ext.mapper.guided_matching import compatible_features, verified_partners
 from colmap_ext.mapper.model import Model, cross_norms
 from colmap_ext.mapper.filtering import has_triangulation_angle
+from colmap_ext.mapper.refinement import points_off_matches
 from colmap_ext.mapper.registration import epipolar_support
 from colmap_ext.mapper.triangulation import complete_tracks, merge_tracks
 from colmap_ext.mapper.two_view import pair_graph
@@ -387,6 +388,37 @@ def test_track_merging_joins_the_halves_of_a_split_track(tmp_path) -> None:
         assert model.point_of[views[3]][keypoint_of[3][p]] >= 0
         assert model.point_of[views[0]][keypoint_of[0][p]] != \
             model.point_of[views[3]][keypoint_of[3][p]]
+
+
+def test_retriangulation_takes_the_points_a_triangulation_can_change(tmp_path) -> None:
+    """Four views of a synthetic ring at their true poses, the true points with their true
+    tracks, true and wrong matches, and a limit so wide that every link counts: the points
+    retriangulation takes (points_off_matches) are a track split in two (both halves), a
+    point missing an observation, and a point holding another point's keypoint beside its
+    own free one; not two points whose tracks share a view, nor a point matched to a free
+    keypoint farther from it than its own."""
+    model, points3D, views, keypoint_of = posed_views_without_points(tmp_path, 4)
+    seen = sorted(set.intersection(*(set(k) for k in keypoint_of)))
+    split, missing, swapped, paired, other, unmatched, untracked = seen[:7]
+
+    def add(p: int, in_views, keypoint=None) -> int:
+        return model.add_point(points3D[p], {views[v]: (keypoint or keypoint_of[v])[p]
+                                             for v in in_views})
+
+    halves = [add(split, (0, 1)), add(split, (2, 3))]
+    missing_id = add(missing, (0, 1, 2))
+    swapped_id = model.add_point(points3D[swapped], {
+        **{views[v]: keypoint_of[v][swapped] for v in (0, 1, 2)},
+        views[3]: keypoint_of[3][untracked]})
+    for p in seen[3:6] + seen[7:]:
+        add(p, range(4))
+    matches = {(views[a], views[b]): [[keypoint_of[a][p], keypoint_of[b][p]] for p in seen]
+               for a in range(4) for b in range(a + 1, 4)}
+    matches[(views[0], views[1])] += [[keypoint_of[0][paired], keypoint_of[1][other]],
+                                      [keypoint_of[0][unmatched], keypoint_of[1][untracked]]]
+    chosen = points_off_matches(model, {pair: np.array(m) for pair, m in matches.items()},
+                                max_error_px=1e6)
+    assert chosen == sorted(halves + [missing_id, swapped_id])
 
 
 def test_epipolar_support_tells_the_true_pose_from_a_turned_one(tmp_path) -> None:

@@ -84,14 +84,19 @@ def complete_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
 @dataclass
 class TrackLinks:
     """Verified matches between registered images whose two keypoints are not
-    observations of one point: each side's point (-1 where its keypoint is free), and
-    whether it reprojects within the limit onto the other side's keypoint (False where
-    free). A true match across a split track has a point near on one side at least; a
-    wrong match that got through verification links points apart."""
+    observations of one point: each side's image and keypoint, its point (-1 where the
+    keypoint is free), and whether that point reprojects within the limit onto the other
+    side's keypoint (False where free). A true match across a split track has a point
+    near on one side at least; a wrong match that got through verification links points
+    apart."""
 
+    first_image: np.ndarray
+    first_kp: np.ndarray
     first: np.ndarray
-    second: np.ndarray
     first_near: np.ndarray
+    second_image: np.ndarray
+    second_kp: np.ndarray
+    second: np.ndarray
     second_near: np.ndarray
 
 
@@ -99,7 +104,7 @@ def track_links(model: Model, verified: dict[int, dict[int, np.ndarray]],
                 max_error_px: float) -> TrackLinks:
     """The TrackLinks of the verified matches between the model's registered images, with
     one reprojection per image."""
-    firsts, seconds = [], []
+    columns: list[list[np.ndarray]] = [[] for _ in range(6)]
     # Per image, (its keypoints, the linked points to reproject onto them, and where the
     # answers go: 2 x the link's index, + 1 for second_near).
     queries: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
@@ -122,8 +127,10 @@ def track_links(model: Model, verified: dict[int, dict[int, np.ndarray]],
                 index = np.arange(num_links, num_links + len(in_pair))
                 num_links += len(in_pair)
                 pair_first, pair_second = first[start:end][in_pair], second[start:end][in_pair]
-                firsts.append(pair_first)
-                seconds.append(pair_second)
+                for column, values in zip(columns, (
+                        np.full(len(in_pair), image_id), matches[in_pair, 0], pair_first,
+                        np.full(len(in_pair), other_id), matches[in_pair, 1], pair_second)):
+                    column.append(values)
                 for kps, point_ids, query_id, target in (
                         (matches[in_pair, 1], pair_first, other_id, 2 * index),
                         (matches[in_pair, 0], pair_second, image_id, 2 * index + 1)):
@@ -136,9 +143,10 @@ def track_links(model: Model, verified: dict[int, dict[int, np.ndarray]],
         kps, point_ids, target = (np.concatenate(part) for part in zip(*parts))
         errors = model.reprojection_errors(image_id, kps, model.xyz[point_ids])
         near[target[errors <= max_error_px]] = True
-    empty = np.zeros(0, np.int64)
-    return TrackLinks(np.concatenate(firsts) if firsts else empty,
-                      np.concatenate(seconds) if seconds else empty, near[0::2], near[1::2])
+    (first_image, first_kp, first, second_image, second_kp, second) = (
+        np.concatenate(column) if column else np.zeros(0, np.int64) for column in columns)
+    return TrackLinks(first_image, first_kp, first, near[0::2],
+                      second_image, second_kp, second, near[1::2])
 
 
 def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
