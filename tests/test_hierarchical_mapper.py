@@ -227,7 +227,7 @@ def test_a_requested_initial_pair_starts_only_the_clusters_that_hold_it(survey, 
 
 def test_clusters_default_to_a_sparser_global_adjustment_schedule():
     """The command's help gives its own default for the global adjustments' growth ratio
-    (the flat mapper's stays COLMAP's 1.1), and a ratio given on the command line wins."""
+    (the flat mapper's is 1.2), and a ratio given on the command line wins."""
     def shown_default(command: str) -> str:
         result = subprocess.run([sys.executable, "-m", "colmap_ext", command, "-h"],
                                 capture_output=True, text=True, timeout=60, check=True)
@@ -235,7 +235,7 @@ def test_clusters_default_to_a_sparser_global_adjustment_schedule():
         help_line = text.split("--Mapper.ba_global_frames_ratio VALUE", 1)[1]
         return help_line.split("(default: ", 1)[1].split(")", 1)[0]
 
-    assert shown_default("mapper") == "1.1"
+    assert shown_default("mapper") == "1.2"
     assert shown_default("hierarchical_mapper") == "1.5"
     assert MAPPER_DEFAULTS.bundle_adjustment.global_images_ratio == 1.5
     given = options_from_flags({"Mapper.ba_global_frames_ratio": 1.1}, base=MAPPER_DEFAULTS)
