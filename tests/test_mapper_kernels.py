@@ -394,23 +394,27 @@ def test_retriangulation_takes_the_points_a_triangulation_can_change(tmp_path) -
     """Four views of a synthetic ring at their true poses, the true points with their true
     tracks, true and wrong matches, and a limit so wide that every link counts: the points
     retriangulation takes (points_off_matches) are a track split in two (both halves), a
-    point missing an observation, and a point holding another point's keypoint beside its
-    own free one; not two points whose tracks share a view, nor a point matched to a free
-    keypoint farther from it than its own."""
+    point missing an observation, a point holding another point's keypoint beside its own
+    free one, and a point whose keypoint another point holds (both); not two points whose
+    tracks share a view, nor a point matched to a free keypoint farther from it than its
+    own."""
     model, points3D, views, keypoint_of = posed_views_without_points(tmp_path, 4)
     seen = sorted(set.intersection(*(set(k) for k in keypoint_of)))
-    split, missing, swapped, paired, other, unmatched, untracked = seen[:7]
+    split, missing, swapped, robbed, paired, other, unmatched, untracked = seen[:8]
+    holder = next(p for p in set.intersection(*(set(k) for k in keypoint_of[:3]))
+                  if p not in keypoint_of[3])
 
-    def add(p: int, in_views, keypoint=None) -> int:
-        return model.add_point(points3D[p], {views[v]: (keypoint or keypoint_of[v])[p]
-                                             for v in in_views})
+    def add(p: int, in_views, **others: int) -> int:
+        track = {views[v]: keypoint_of[v][p] for v in in_views}
+        return model.add_point(points3D[p], {**track, **{
+            views[int(v[1:])]: kp for v, kp in others.items()}})
 
     halves = [add(split, (0, 1)), add(split, (2, 3))]
     missing_id = add(missing, (0, 1, 2))
-    swapped_id = model.add_point(points3D[swapped], {
-        **{views[v]: keypoint_of[v][swapped] for v in (0, 1, 2)},
-        views[3]: keypoint_of[3][untracked]})
-    for p in seen[3:6] + seen[7:]:
+    swapped_id = add(swapped, (0, 1, 2), v3=keypoint_of[3][untracked])
+    robbed_id = add(robbed, (0, 1, 2))
+    holder_id = add(holder, (0, 1, 2), v3=keypoint_of[3][robbed])
+    for p in seen[4:7] + seen[8:]:
         add(p, range(4))
     matches = {(views[a], views[b]): [[keypoint_of[a][p], keypoint_of[b][p]] for p in seen]
                for a in range(4) for b in range(a + 1, 4)}
@@ -418,7 +422,7 @@ def test_retriangulation_takes_the_points_a_triangulation_can_change(tmp_path) -
                                       [keypoint_of[0][unmatched], keypoint_of[1][untracked]]]
     chosen = points_off_matches(model, {pair: np.array(m) for pair, m in matches.items()},
                                 max_error_px=1e6)
-    assert chosen == sorted(halves + [missing_id, swapped_id])
+    assert chosen == sorted(halves + [missing_id, swapped_id, robbed_id, holder_id])
 
 
 def test_epipolar_support_tells_the_true_pose_from_a_turned_one(tmp_path) -> None:

@@ -199,17 +199,15 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
 
 def points_off_matches(model: Model, matches: dict[Pair, np.ndarray],
                        max_error_px: float) -> list[int]:
-    """The points whose tracks a triangulation from the final poses can change: those of
-    the verified matches between the model's registered images whose two keypoints are
-    not observations of one point, where each keypoint's point reprojects within
-    `max_error_px` onto the other keypoint (track_links), and that link two tracks in
-    different images (a track the noise split) or a point and a free keypoint of an image
-    where the point has no observation (a missing one) or one farther from it (taken from
-    another point). Two points whose tracks share an image stay two: a wrong match that got
-    through verification links them, or two points that project close together."""
+    """The points whose tracks a triangulation from the final poses can change. They come
+    from the verified matches between the model's registered images whose two keypoints
+    are not observations of one point (track_links): where one side's point reprojects
+    within `max_error_px` onto the other side's keypoint, and has no observation in that
+    keypoint's image (a track the noise split, an observation left out or taken by another
+    point) or one farther from it, that point and the keypoint's point, if any. A point
+    that holds its own, nearer keypoint there stays as it is: a wrong match that got
+    through verification links it, or a point projecting close to it."""
     links = track_links(model, pair_graph(matches), max_error_px)
-    near = (links.first_near | (links.first < 0)) & (links.second_near | (links.second < 0))
-    both = near & (links.first >= 0) & (links.second >= 0)
     tracks: dict[int, dict[int, int]] = {}
 
     def track(point_id: int) -> dict[int, int]:
@@ -218,21 +216,19 @@ def points_off_matches(model: Model, matches: dict[Pair, np.ndarray],
         return tracks[point_id]
 
     point_ids = set()
-    for first, second in set(zip(links.first[both].tolist(), links.second[both].tolist())):
-        if not track(first).keys() & track(second).keys():
-            point_ids.update((first, second))
-    one = near & ~both
-    free_first = links.first[one] < 0
-    for point_id, image_id, kp in set(zip(
-            np.where(free_first, links.second[one], links.first[one]).tolist(),
-            np.where(free_first, links.first_image[one], links.second_image[one]).tolist(),
-            np.where(free_first, links.first_kp[one], links.second_kp[one]).tolist())):
-        observed = track(point_id).get(image_id)
-        if observed is None:
+    for points, near, images, kps, owners in (
+            (links.first, links.first_near, links.second_image, links.second_kp, links.second),
+            (links.second, links.second_near, links.first_image, links.first_kp, links.first)):
+        for point_id, image_id, kp, owner in set(zip(points[near].tolist(),
+                                                     images[near].tolist(),
+                                                     kps[near].tolist(), owners[near].tolist())):
+            observed = track(point_id).get(image_id)
+            if observed is not None:
+                errors = model.reprojection_errors(image_id, np.array([kp, observed]),
+                                                   model.xyz[[point_id, point_id]])
+                if errors[0] >= errors[1]:
+                    continue
             point_ids.add(point_id)
-            continue
-        errors = model.reprojection_errors(image_id, np.array([kp, observed]),
-                                           model.xyz[[point_id, point_id]])
-        if errors[0] < errors[1]:
-            point_ids.add(point_id)
+            if owner >= 0:
+                point_ids.add(owner)
     return sorted(point_ids)
