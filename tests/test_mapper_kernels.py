@@ -404,16 +404,18 @@ def test_retriangulation_takes_the_points_a_triangulation_can_change(tmp_path) -
     holder = next(p for p in set.intersection(*(set(k) for k in keypoint_of[:3]))
                   if p not in keypoint_of[3])
 
-    def add(p: int, in_views, **others: int) -> int:
+    def add(p: int, in_views, view3_keypoint: int | None = None) -> int:
+        """Point p with its true keypoints in `in_views`, and another keypoint in view 3."""
         track = {views[v]: keypoint_of[v][p] for v in in_views}
-        return model.add_point(points3D[p], {**track, **{
-            views[int(v[1:])]: kp for v, kp in others.items()}})
+        if view3_keypoint is not None:
+            track[views[3]] = view3_keypoint
+        return model.add_point(points3D[p], track)
 
     halves = [add(split, (0, 1)), add(split, (2, 3))]
     missing_id = add(missing, (0, 1, 2))
-    swapped_id = add(swapped, (0, 1, 2), v3=keypoint_of[3][untracked])
+    swapped_id = add(swapped, (0, 1, 2), keypoint_of[3][untracked])
     robbed_id = add(robbed, (0, 1, 2))
-    holder_id = add(holder, (0, 1, 2), v3=keypoint_of[3][robbed])
+    holder_id = add(holder, (0, 1, 2), keypoint_of[3][robbed])
     for p in seen[4:7] + seen[8:]:
         add(p, range(4))
     matches = {(views[a], views[b]): [[keypoint_of[a][p], keypoint_of[b][p]] for p in seen]
