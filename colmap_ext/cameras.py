@@ -46,3 +46,22 @@ def pixel_angles(camera: pycolmap.Camera, points2D: np.ndarray) -> np.ndarray:
         sine = np.linalg.norm(np.cross(before, after), axis=1)
         angles += np.arctan2(sine, np.einsum("ij,ij->i", before, after))
     return angles / 2
+
+
+def pixels_from_tangent(camera: pycolmap.Camera, rays: np.ndarray,
+                        step: float = 1e-6) -> np.ndarray:
+    """(N, 2, 3): at each unit ray, the camera model's pixels per unit of the plane tangent
+    to it at unit distance (central differences), as a linear map of 3-vectors on that
+    plane. Times a point's offset from the ray on the plane, it is the point's
+    reprojection error in pixels to first order: what the bundle adjuster minimises,
+    for any camera model."""
+    rays = np.asarray(rays, np.float64).reshape(-1, 3)
+    # Two unit vectors orthogonal to each ray and to each other.
+    helper = np.where(np.abs(rays[:, :1]) < 0.9, [[1.0, 0.0, 0.0]], [[0.0, 1.0, 0.0]])
+    first = np.cross(rays, helper)
+    first /= np.linalg.norm(first, axis=1, keepdims=True)
+    second = np.cross(rays, first)
+    jacobian = np.stack([(camera.img_from_cam(rays + step * axis) -
+                          camera.img_from_cam(rays - step * axis)) / (2 * step)
+                         for axis in (first, second)], axis=2)
+    return np.einsum("nij,njk->nik", jacobian, np.stack([first, second], axis=1))

@@ -1,6 +1,7 @@
 """Calibrated minimal solvers and RANSAC (OpenGV, in C++) in COLMAP's conventions, for
-single cameras and camera rigs (generalized solvers), and
-the mapper's one compiled search kernel (`largest_per_row`).
+single cameras and camera rigs (generalized solvers), the mapper's bundle adjuster for
+calibrated cameras (`bundle_adjust`), and its one compiled search kernel
+(`largest_per_row`).
 
 Conventions, once:
 - Inputs are undistorted bearing vectors in any direction (behind the image plane too):
@@ -19,11 +20,13 @@ Conventions, once:
 
 from solvers.api import (
     AbsolutePoseResult,
+    BundleAdjustmentResult,
     EstimationError,
     GeneralizedAbsolutePoseResult,
     GeneralizedRelativePoseResult,
     RelativePoseResult,
     absolute_pose,
+    bundle_adjust,
     five_point,
     generalized_absolute_pose,
     generalized_relative_pose,
@@ -36,11 +39,13 @@ from solvers.api import (
 
 __all__ = [
     "AbsolutePoseResult",
+    "BundleAdjustmentResult",
     "EstimationError",
     "GeneralizedAbsolutePoseResult",
     "GeneralizedRelativePoseResult",
     "RelativePoseResult",
     "absolute_pose",
+    "bundle_adjust",
     "five_point",
     "generalized_absolute_pose",
     "generalized_relative_pose",

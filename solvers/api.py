@@ -278,3 +278,65 @@ def largest_per_row(values: np.ndarray, k: int, *, subset: np.ndarray | None = N
     if k < 0 or k_subset < 0:
         raise ValueError(f"k and k_subset must be >= 0, got {k} and {k_subset}")
     return _opengv.largest_per_row(values, int(k), columns, int(k_subset))
+
+
+@dataclass
+class BundleAdjustmentResult:
+    """The adjusted rig_from_world of every frame and position of every point, and Ceres's
+    figures: iterations (successful and unsuccessful steps), the cost
+    (1/2 sum of the loss of the squared pixel residuals) before and after."""
+
+    rigs_from_world: list[pycolmap.Rigid3d]
+    points3D: np.ndarray
+    iterations: int
+    initial_cost: float
+    final_cost: float
+
+
+BUNDLE_LOSSES = ("trivial", "cauchy", "huber", "soft_l1")
+
+
+def bundle_adjust(rigs_from_world: list[pycolmap.Rigid3d], free_parameters,
+                  sensors_from_rig: list[pycolmap.Rigid3d], image_frame, points3D,
+                  point_variable, observation_image, observation_point, rays,
+                  pixels_from_tangent, *, loss: str = "trivial", loss_scale: float = 1.0,
+                  max_iterations: int = 50, gradient_tolerance: float = 1.0,
+                  function_tolerance: float = 0.0,
+                  max_step_scale: float = 16.0) -> BundleAdjustmentResult:
+    """Bundle adjustment of frame poses and points with calibrated cameras (C++).
+
+    Image i is camera `sensors_from_rig[i]` (held constant) of frame `image_frame[i]`;
+    a frame's parameters (rotation x3, then translation x3, (F, 6) bools) change where
+    `free_parameters` says, a point where `point_variable`. Observation k is point
+    `observation_point[k]` seen by image `observation_image[k]` along the unit ray
+    `rays[k]`; its residual is `pixels_from_tangent[k]` (2x3, the camera model's pixels
+    per unit of the plane tangent to the ray at unit distance) times the point's offset
+    from the ray on that plane: the reprojection error in pixels to first order, for any
+    camera model. Levenberg-Marquardt on the Schur complement of the points, with Ceres's
+    losses (scale in pixels), step control and stopping rules; each accepted step is tried
+    at 2, 4, ... up to `max_step_scale` times its length while the cost falls (under a
+    robust loss a reweighted step falls short). Raises EstimationError if no finite cost
+    comes out.
+    """
+    check_choice("loss", loss, BUNDLE_LOSSES)
+    if not max_step_scale >= 1 or not max_iterations >= 0 or not loss_scale > 0:
+        raise ValueError("bundle_adjust needs max_step_scale >= 1, max_iterations >= 0 "
+                         "and loss_scale > 0")
+    f = as_rays(rays, "rays")
+    observed = np.ascontiguousarray(observation_point, dtype=np.int32).reshape(-1)
+    images = np.ascontiguousarray(observation_image, dtype=np.int32).reshape(-1)
+    jacobians = np.ascontiguousarray(pixels_from_tangent, dtype=np.float64).reshape(-1, 6)
+    points = as_points3D(points3D, "points3D")
+    frames, adjusted, info = _opengv.bundle_adjust(
+        as_pose_rows(rigs_from_world, "rigs_from_world"),
+        np.ascontiguousarray(free_parameters, dtype=bool).reshape(-1, 6),
+        as_pose_rows(sensors_from_rig, "sensors_from_rig"),
+        np.ascontiguousarray(image_frame, dtype=np.int32).reshape(-1), points,
+        np.ascontiguousarray(point_variable, dtype=bool).reshape(-1), images, observed, f,
+        jacobians, loss, float(loss_scale), int(max_iterations), float(gradient_tolerance),
+        float(function_tolerance), float(max_step_scale))
+    if not info["usable"]:
+        raise EstimationError("bundle adjustment gave no finite cost")
+    poses = frames.reshape(-1, 3, 4)
+    return BundleAdjustmentResult([rigid3d(T[:, :3], T[:, 3]) for T in poses], adjusted,
+                                  info["iterations"], info["initial_cost"], info["final_cost"])

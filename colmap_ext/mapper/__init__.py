@@ -8,7 +8,8 @@ One module per step of the method (SPEC.md, steps 4 to 7):
 - `registration`: 2D-3D correspondences and P3P (a rig's frame: GP3P) RANSAC for the next frame
 - `guided_matching`: visually and geometrically compatible features in registered images
 - `triangulation`: new points and longer tracks from those features
-- `bundle_adjustment`: local and global refinement through pycolmap
+- `bundle_adjustment`: local and global refinement: our calibrated adjuster
+  (solvers.bundle_adjust), pycolmap's Ceres for the finished model
 - `filtering`: dropping incompatible observations, weakly supported points and ill-posed images
 - `merging`: joining models that fell apart, by a similarity two images agree on
 - `refinement`: what the loop and the refinement of finished models share (neighbours,

@@ -122,5 +122,5 @@ def format_summary(summary: dict, output_path: str) -> str:
     counts = summary.get("counts", {})
     if counts.get("bundle adjustment solves"):
         lines.append(f"Bundle adjustment: {counts['bundle adjustment solves']} solves, "
-                     f"{counts['bundle adjustment iterations']} Ceres iterations")
+                     f"{counts['bundle adjustment iterations']} iterations")
     return "\n".join(lines)

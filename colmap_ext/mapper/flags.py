@@ -140,7 +140,7 @@ _TRIANGULATOR = ("points come from the method's guided matching (features compat
                  "least three images), not from COLMAP's triangulator")
 _BA_SCHEDULE = ("global adjustment runs whenever the model grows by --Mapper.ba_global_frames_"
                 "ratio, each adjustment followed by filtering")
-_GPU = "bundle adjustment runs on the CPU (pycolmap's Ceres)"
+_GPU = "bundle adjustment runs on the CPU (ours, and pycolmap's Ceres)"
 _NO_PRIORS = "position priors are not used"
 
 
@@ -217,7 +217,7 @@ FLAGS: tuple[Flag, ...] = (
     _na("Mapper.ba_local_function_tolerance", float, "ba_local_function_tolerance", 0.0,
         "local and global adjustment share --Mapper.ba_global_function_tolerance"),
     Flag("Mapper.ba_local_max_num_iterations", int, "ba_local_max_num_iterations",
-         "bundle_adjustment.local_max_iterations", "Ceres iterations of a local adjustment; -1: ours",
+         "bundle_adjustment.local_max_iterations", "iterations of a local adjustment; -1: ours",
          convert=_iterations),
     Flag("Mapper.ba_global_frames_ratio", float, "ba_global_frames_ratio",
          "bundle_adjustment.global_images_ratio", "global adjustment whenever the model has grown by this "
@@ -227,10 +227,10 @@ FLAGS: tuple[Flag, ...] = (
         aliases=("Mapper.ba_global_images_freq",)),
     _na("Mapper.ba_global_points_freq", int, "ba_global_points_freq", 250000, _BA_SCHEDULE),
     Flag("Mapper.ba_global_function_tolerance", float, "ba_global_function_tolerance",
-         "bundle_adjustment.function_tolerance", "Ceres stops when an iteration lowers the cost by less "
+         "bundle_adjustment.function_tolerance", "an adjustment stops when an iteration lowers the cost by less "
          "than this fraction (local and global adjustment); 0: at the iteration limit"),
     Flag("Mapper.ba_global_max_num_iterations", int, "ba_global_max_num_iterations",
-         "bundle_adjustment.global_max_iterations", "Ceres iterations of a global adjustment; -1: ours",
+         "bundle_adjustment.global_max_iterations", "iterations of a global adjustment; -1: ours",
          convert=_iterations),
     _na("Mapper.ba_global_max_refinements", int, "ba_global_max_refinements", 5, _BA_SCHEDULE),
     _na("Mapper.ba_global_max_refinement_change", float, "ba_global_max_refinement_change",

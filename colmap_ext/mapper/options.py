@@ -199,14 +199,15 @@ class FilteringOptions:
 
 @dataclass
 class BundleAdjustmentOptions:
-    """Local and global refinement through pycolmap's Ceres (bundle_adjustment.py)."""
+    """Local and global refinement (bundle_adjustment.py): our calibrated adjuster, and
+    pycolmap's Ceres for the finished model and where intrinsics or rigs are refined."""
 
     # Images of a local adjustment: the new one and its most connected registered images.
     local_num_images: int = 6
     # Points seen by more images enter a local adjustment through the local images'
     # observations alone; shorter tracks bring their other images in, poses constant.
     local_max_track_length: int = 15
-    # Ceres iterations of a local adjustment ...
+    # Iterations (successful and unsuccessful steps, as Ceres counts) of a local adjustment ...
     local_max_iterations: int = 25
     # ... which also stops when no parameter's gradient exceeds this: COLMAP's incremental
     # mapper's value; pycolmap's default 1e-4 kept solves iterating on steps far below the noise.
@@ -214,7 +215,7 @@ class BundleAdjustmentOptions:
     # A global adjustment whenever the registered images have grown by this ratio
     # (COLMAP's 1.1 gave the same poses where the errors look Gaussian, in more solves).
     global_images_ratio: float = 1.2
-    # Ceres iterations of a global adjustment, and its gradient tolerance (as local).
+    # Iterations of a global adjustment, and its gradient tolerance (as local).
     global_max_iterations: int = 50
     global_gradient_tolerance: float = 1.0
     # The robust loss, one of BA_LOSSES, and its scale (px) ...
@@ -222,7 +223,7 @@ class BundleAdjustmentOptions:
     loss_scale_px: float = 1.0
     # ... raised to this many times the model's median reprojection error (measured at
     # each global adjustment) where the keypoint noise reaches it: a scale below the
-    # noise down-weights good observations and slows Ceres down; 1.7 x the median is
+    # noise down-weights good observations and slows the adjustment down; 1.7 x the median is
     # twice the standard deviation of Gaussian noise.
     noise_loss_scale_ratio: float = 1.7
     # The loss where a model's reprojection errors look Gaussian, measured before each
@@ -232,7 +233,11 @@ class BundleAdjustmentOptions:
     # matches) the robust loss stays, which least squares would let them pull
     # (BENCHMARKS.md, "Why the defaults").
     gaussian_loss: str = "trivial"
-    # Ceres stops when an iteration lowers the cost by less than this fraction; 0: never.
+    # Each step our adjuster (solvers.bundle_adjust) takes is tried at 2, 4, ... up to
+    # this many times its length while the cost falls (1: never): under a robust loss a
+    # reweighted step falls short of the minimum along it (BENCHMARKS.md, "Why the defaults").
+    max_step_scale: float = 16.0
+    # The adjustment stops when an iteration lowers the cost by less than this fraction; 0: never.
     function_tolerance: float = 1e-5
     # ... and in least squares: run to the gradient tolerance, as COLMAP's adjustments are.
     least_squares_function_tolerance: float = 0.0
@@ -267,6 +272,7 @@ class BundleAdjustmentOptions:
                  f"one of {', '.join(BA_LOSSES)}")
         _require(self.loss_scale_px > 0, self, "loss_scale_px", "> 0")
         _require(self.noise_loss_scale_ratio >= 0, self, "noise_loss_scale_ratio", ">= 0")
+        _require(self.max_step_scale >= 1, self, "max_step_scale", ">= 1")
         _require(self.function_tolerance >= 0, self, "function_tolerance", ">= 0")
         _require(self.least_squares_function_tolerance >= 0, self,
                  "least_squares_function_tolerance", ">= 0")
@@ -321,7 +327,7 @@ class MapperOptions:
     snapshot_frames_freq: int = 0
     # RANSAC seed: with one, two runs give the same model bit for bit; None: unseeded.
     seed: int | None = None
-    # Threads of the descriptor searches and of Ceres; -1: every core.
+    # Threads of the descriptor searches and of pycolmap's Ceres; -1: every core.
     num_threads: int = -1
 
     def threads(self) -> int:

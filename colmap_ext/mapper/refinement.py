@@ -96,7 +96,8 @@ class ModelAdjuster:
             filter_points(self.model, image_ids, self.filtering)
 
     def global_adjustment(self, final: bool = False, rounds: int = 2) -> None:
-        """Adjust every registered image, then filter. `final`, the model's end: `rounds`
+        """Adjust every registered image, then filter. `final`, the model's end, on the
+        camera model's own reprojection errors (bundle_adjust's `exact`): `rounds`
         rounds, their filter also relative to the model's median error
         (final_max_error_ratio), and one more adjustment if the last filter dropped
         observations or the errors it left call for another loss. A round whose filter
@@ -107,7 +108,7 @@ class ModelAdjuster:
         ratio = self.filtering.final_max_error_ratio if final else 0.0
         for _ in range(rounds if final else 1):
             self._follow_errors()
-            self._bundle_adjust(registered, local=False, refine_intrinsics=True)
+            self._bundle_adjust(registered, local=False, refine_intrinsics=True, exact=final)
             with self.timer("filtering"):
                 removed, removed_points = filter_points(model, registered, self.filtering,
                                                         final=final, max_error_ratio=ratio)
@@ -117,7 +118,7 @@ class ModelAdjuster:
             loss = self.loss
             self._follow_errors()
             if ratio > 0 and removed or self.loss != loss:
-                self._bundle_adjust(registered, local=False, refine_intrinsics=True)
+                self._bundle_adjust(registered, local=False, refine_intrinsics=True, exact=True)
 
     def _follow_errors(self) -> None:
         """Choose the loss and its scale from the registered images' reprojection errors."""
@@ -131,11 +132,11 @@ class ModelAdjuster:
         self.loss = ba.gaussian_loss if self.errors_gaussian else ba.loss
 
     def _bundle_adjust(self, image_ids: list[int], local: bool,
-                       refine_intrinsics: bool = False) -> None:
+                       refine_intrinsics: bool = False, exact: bool = False) -> None:
         with self.timer("bundle adjustment"):
             iterations = bundle_adjust(self.model, image_ids, self.ba, local,
                                        self.num_threads, refine_intrinsics, self.loss,
-                                       self.loss_scale_px)
+                                       self.loss_scale_px, exact)
         self.timer.counts["bundle adjustment solves"] += 1
         self.timer.counts["bundle adjustment iterations"] += iterations
 

@@ -10,6 +10,7 @@
 #include <string>
 
 #include "absolute_pose.hpp"
+#include "bundle_adjustment.hpp"
 #include "largest.hpp"
 #include "relative_pose.hpp"
 #include "triangulation.hpp"
@@ -222,6 +223,94 @@ py::tuple triangulate_tracks_py(const Eigen::Ref<const RowsX12>& cams_from_world
   return py::make_tuple(points, valid);
 }
 
+
+using RowsX6 = Eigen::Matrix<double, Eigen::Dynamic, 6, Eigen::RowMajor>;
+using BoolRowsX6 = Eigen::Matrix<bool, Eigen::Dynamic, 6, Eigen::RowMajor>;
+
+Loss loss_type(const std::string& name) {
+  if (name == "trivial") return Loss::kTrivial;
+  if (name == "cauchy") return Loss::kCauchy;
+  if (name == "huber") return Loss::kHuber;
+  if (name == "soft_l1") return Loss::kSoftL1;
+  throw std::invalid_argument("unknown loss '" + name + "' (trivial, cauchy, huber, soft_l1)");
+}
+
+py::tuple bundle_adjust_py(const Eigen::Ref<const RowsX12>& rigs_from_world,
+                           const Eigen::Ref<const BoolRowsX6>& free_parameters,
+                           const Eigen::Ref<const RowsX12>& sensors_from_rig,
+                           const Eigen::Ref<const Eigen::VectorXi>& image_frame,
+                           const Eigen::Ref<const RowsX3>& points,
+                           const Eigen::Ref<const Eigen::Matrix<bool, Eigen::Dynamic, 1>>& point_variable,
+                           const Eigen::Ref<const Eigen::VectorXi>& observation_image,
+                           const Eigen::Ref<const Eigen::VectorXi>& observation_point,
+                           const Eigen::Ref<const RowsX3>& rays,
+                           const Eigen::Ref<const RowsX6>& pixels_from_tangent,
+                           const std::string& loss, double loss_scale, int max_iterations,
+                           double gradient_tolerance, double function_tolerance,
+                           double max_step_scale) {
+  const Eigen::Index num_frames = rigs_from_world.rows(), num_images = sensors_from_rig.rows();
+  const Eigen::Index num_points = points.rows(), num_observations = rays.rows();
+  if (free_parameters.rows() != num_frames || image_frame.size() != num_images ||
+      point_variable.size() != num_points || observation_image.size() != num_observations ||
+      observation_point.size() != num_observations ||
+      pixels_from_tangent.rows() != num_observations)
+    throw std::invalid_argument("bundle_adjust: inconsistent array lengths");
+  for (Eigen::Index i = 0; i < num_images; ++i)
+    if (image_frame[i] < 0 || image_frame[i] >= num_frames)
+      throw std::invalid_argument("bundle_adjust: image_frame out of range");
+  std::vector<BundleObservation> observations(num_observations);
+  for (Eigen::Index k = 0; k < num_observations; ++k) {
+    if (observation_image[k] < 0 || observation_image[k] >= num_images ||
+        observation_point[k] < 0 || observation_point[k] >= num_points)
+      throw std::invalid_argument("bundle_adjust: observation index out of range");
+    observations[k].image = observation_image[k];
+    observations[k].point = observation_point[k];
+    observations[k].ray = rays.row(k).transpose();
+    observations[k].pixels_from_tangent =
+        Eigen::Map<const Eigen::Matrix<double, 2, 3, Eigen::RowMajor>>(pixels_from_tangent.row(k).data());
+  }
+  std::vector<Pose> frames = to_poses(rigs_from_world);
+  const std::vector<Pose> sensors = to_poses(sensors_from_rig);
+  std::vector<Eigen::Matrix<bool, 6, 1>> free(num_frames);
+  for (Eigen::Index f = 0; f < num_frames; ++f) free[f] = free_parameters.row(f).transpose();
+  std::vector<Eigen::Vector3d> xyz(num_points);
+  std::vector<char> variable(num_points);
+  for (Eigen::Index p = 0; p < num_points; ++p) {
+    xyz[p] = points.row(p).transpose();
+    variable[p] = point_variable[p];
+  }
+  BundleOptions options;
+  options.loss = loss_type(loss);
+  options.loss_scale = loss_scale;
+  options.max_iterations = max_iterations;
+  options.gradient_tolerance = gradient_tolerance;
+  options.function_tolerance = function_tolerance;
+  options.max_step_scale = max_step_scale;
+  BundleSummary summary;
+  {
+    py::gil_scoped_release release;
+    summary = bundle_adjust(frames, free, sensors, to_indices(image_frame), xyz, variable,
+                            observations, options);
+  }
+  py::array_t<double> frames_out({static_cast<py::ssize_t>(num_frames), py::ssize_t{12}});
+  auto fo = frames_out.mutable_unchecked<2>();
+  for (Eigen::Index f = 0; f < num_frames; ++f)
+    for (int r = 0; r < 3; ++r) {
+      for (int c = 0; c < 3; ++c) fo(f, 4 * r + c) = frames[f].R(r, c);
+      fo(f, 4 * r + 3) = frames[f].t(r);
+    }
+  py::array_t<double> points_out({static_cast<py::ssize_t>(num_points), py::ssize_t{3}});
+  auto po = points_out.mutable_unchecked<2>();
+  for (Eigen::Index p = 0; p < num_points; ++p)
+    for (int j = 0; j < 3; ++j) po(p, j) = xyz[p][j];
+  py::dict info;
+  info["iterations"] = summary.iterations;
+  info["initial_cost"] = summary.initial_cost;
+  info["final_cost"] = summary.final_cost;
+  info["usable"] = summary.usable;
+  return py::make_tuple(frames_out, points_out, info);
+}
+
 using FloatMatrix = py::array_t<float, py::array::c_style | py::array::forcecast>;
 using Int64Vector = py::array_t<int64_t, py::array::c_style | py::array::forcecast>;
 
@@ -255,7 +344,7 @@ py::tuple largest_per_row_py(const FloatMatrix& values, int k, const Int64Vector
 PYBIND11_MODULE(_opengv, m) {
   m.doc() =
       "OpenGV minimal solvers and RANSAC in COLMAP's conventions (see geometry.hpp), and the "
-      "mapper's largest-per-row kernel (largest.hpp).";
+      "mapper's bundle adjuster (bundle_adjustment.hpp) and largest-per-row kernel (largest.hpp).";
   m.def("relative_pose", &relative_pose, py::arg("rays1"), py::arg("rays2"), py::arg("method"),
         py::arg("max_errors"), py::arg("max_iterations"), py::arg("min_iterations"),
         py::arg("confidence"), py::arg("seed"));
@@ -276,6 +365,13 @@ PYBIND11_MODULE(_opengv, m) {
   m.def("triangulate_tracks", &triangulate_tracks_py, py::arg("cams_from_world"),
         py::arg("view_index"), py::arg("point_index"), py::arg("rays"), py::arg("num_points"),
         py::arg("min_angle_deg"));
+  m.def("bundle_adjust", &bundle_adjust_py, py::arg("rigs_from_world"),
+        py::arg("free_parameters"), py::arg("sensors_from_rig"), py::arg("image_frame"),
+        py::arg("points"), py::arg("point_variable"), py::arg("observation_image"),
+        py::arg("observation_point"), py::arg("rays"), py::arg("pixels_from_tangent"),
+        py::arg("loss"), py::arg("loss_scale"), py::arg("max_iterations"),
+        py::arg("gradient_tolerance"), py::arg("function_tolerance"),
+        py::arg("max_step_scale"));
   m.def("largest_per_row", &largest_per_row_py, py::arg("values"), py::arg("k"),
         py::arg("subset"), py::arg("k_subset"));
 }
