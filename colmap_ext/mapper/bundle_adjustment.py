@@ -150,7 +150,8 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
         jacobians[at] = pixels_from_tangent(model.camera(image_id), rays[at])
         frame_ids.append(model.frame_id(image_id))
     frame_order = sorted(set(frame_ids))
-    frame_index = np.array([frame_order.index(f) for f in frame_ids], np.int32)
+    position = {frame_id: index for index, frame_id in enumerate(frame_order)}
+    frame_index = np.array([position[f] for f in frame_ids], np.int32)
     frames = reconstruction.frames
     rigs_from_world = [frames[f].rig_from_world for f in frame_order]
     free = np.zeros((len(frame_order), 6), bool)
@@ -160,9 +161,9 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
             frame_id not in selection.constant_frame_ids
     held, two_cams = _gauge(reconstruction, ordered, selection.constant_frame_ids, ba)
     for frame_id in held:
-        free[frame_order.index(frame_id)] = False
+        free[position[frame_id]] = False
     if two_cams:
-        _hold_scale(model, selection.image_ids, frame_order, free, rigs_from_world)
+        _hold_scale(model, selection.image_ids, position, free, rigs_from_world)
     # A point with observations outside the problem stays constant.
     track_lengths = np.bincount(model.point_of_flat[model.point_of_flat >= 0],
                                 minlength=len(model.xyz))
@@ -192,12 +193,13 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
     return result.iterations
 
 
-def _hold_scale(model: Model, image_ids: Iterable[int], frame_order: list[int],
+def _hold_scale(model: Model, image_ids: Iterable[int], position: dict[int, int],
                 free: np.ndarray, rigs_from_world: list[pycolmap.Rigid3d]) -> None:
-    """COLMAP's TWO_CAMS_FROM_WORLD gauge on `free`: the first image's frame (by image
-    id; a constant frame if there is one) constant, and of the next frame's translation
-    the coordinate along which it lies farthest from the first in that frame's axes."""
-    frames = list(dict.fromkeys(frame_order.index(model.frame_id(i)) for i in sorted(image_ids)))
+    """COLMAP's TWO_CAMS_FROM_WORLD gauge on `free` (a row per frame, at `position`):
+    the first image's frame (by image id; a constant frame if there is one) constant,
+    and of the next frame's translation the coordinate along which it lies farthest from
+    the first, in the first frame's axes."""
+    frames = list(dict.fromkeys(position[model.frame_id(i)] for i in sorted(image_ids)))
     held = [i for i in frames if not free[i].any()]
     first = held[0] if held else frames[0]
     free[first] = False

@@ -105,9 +105,10 @@ class Adjuster {
         apply(step, 1.0, frames_before, points_before);
         new_cost = evaluate_cost();
       }
-      const double ratio = (cost - new_cost) / step.predicted_decrease;
-      if (!solved || !std::isfinite(new_cost) || step.predicted_decrease <= 0 ||
-          ratio < kMinRelativeDecrease) {
+      const double ratio = solved && step.predicted_decrease > 0
+                               ? (cost - new_cost) / step.predicted_decrease
+                               : -1.0;
+      if (!std::isfinite(new_cost) || ratio < kMinRelativeDecrease) {
         frames_ = frames_before;
         points_ = points_before;
         radius /= decrease_factor;
