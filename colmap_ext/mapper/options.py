@@ -78,8 +78,12 @@ class RegistrationOptions:
     abs_pose_min_num_inliers: int = 15
     # P3P inliers as a fraction of the image's correspondences.
     abs_pose_min_inlier_ratio: float = 0.2
+    # Reprojection error (px) of the P3P inliers the pose is computed from, where
+    # abs_pose_max_error_px is larger (COLMAP's 12 px): the pose is least squares on its
+    # inliers, and 12 px ones put it degrees off. Also the epipolar check's distance.
+    pose_max_error_px: float = 4.0
     # Fraction of the image's verified matches to registered images that its pose must
-    # keep on their epipolar lines (within abs_pose_max_error_px); 0 turns the check off.
+    # keep on their epipolar lines (within pose_max_error_px); 0 turns the check off.
     min_epipolar_support: float = 0.85
     # Times an image that failed to register is tried again as the model grows.
     max_trials: int = 3
@@ -90,6 +94,7 @@ class RegistrationOptions:
         _require(self.abs_pose_min_num_inliers >= 4, self, "abs_pose_min_num_inliers", ">= 4")
         _require(0 <= self.abs_pose_min_inlier_ratio <= 1, self, "abs_pose_min_inlier_ratio",
                  "in [0, 1]")
+        _require(self.pose_max_error_px > 0, self, "pose_max_error_px", "> 0")
         _require(0 <= self.min_epipolar_support <= 1, self, "min_epipolar_support", "in [0, 1]")
         _require(self.max_trials >= 1, self, "max_trials", ">= 1")
 

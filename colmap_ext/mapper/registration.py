@@ -79,8 +79,9 @@ def register_frame(model: Model, correspondences: Correspondences,
                    seed: int | None) -> Outcome:
     """Estimate the pose of a frame from the 2D-3D correspondences of its images (P3P for
     an image alone in its frame, GP3P for a rig's images, both OpenGV's, refined on the
-    inliers), then add the inliers to the points' tracks (per image, one keypoint per
-    point, the one reprojecting closest).
+    inliers within pose_max_error_px), then add the inliers within abs_pose_max_error_px
+    to the points' tracks (per image, one keypoint per point, the one reprojecting
+    closest).
 
     The pose must also keep the images' verified matches (`graph`) to registered images
     on their epipolar lines (epipolar_support): on repeated texture, wrong
@@ -96,25 +97,23 @@ def register_frame(model: Model, correspondences: Correspondences,
         return Outcome.TOO_FEW_INLIERS
     camera_index = np.repeat(np.arange(len(image_ids)), [len(p) for p in pairs_of.values()])
     rays = np.concatenate([model.rays[i][p[:, 0]] for i, p in pairs_of.items()])
-    max_error = registration.abs_pose_max_error_px * np.concatenate(
-        [model.pixel_angles[i][p[:, 0]] for i, p in pairs_of.items()])
+    pixel_angles = np.concatenate([model.pixel_angles[i][p[:, 0]] for i, p in pairs_of.items()])
+    xyz = model.xyz[pairs[:, 1]]
     cams_from_rig = [model.cam_from_rig(image_id) for image_id in image_ids]
     try:
-        if len(image_ids) == 1:
-            result = solvers.absolute_pose(
-                rays, model.xyz[pairs[:, 1]], max_error=max_error,
-                min_num_inliers=registration.abs_pose_min_num_inliers, seed=seed)
-            cams_from_world = [result.cam_from_world]
-        else:
-            result = solvers.generalized_absolute_pose(
-                rays, camera_index, model.xyz[pairs[:, 1]], cams_from_rig, max_error=max_error,
-                min_num_inliers=registration.abs_pose_min_num_inliers, seed=seed)
-            cams_from_world = [cam_from_rig * result.rig_from_world
-                               for cam_from_rig in cams_from_rig]
+        result, cams_from_world = _estimate_pose(
+            rays, camera_index, xyz, cams_from_rig, registration.abs_pose_max_error_px *
+            pixel_angles, registration.abs_pose_min_num_inliers, seed)
+        num_keypoints = sum(len(np.unique(p[:, 0])) for p in pairs_of.values())
+        if result.num_inliers < registration.abs_pose_min_inlier_ratio * num_keypoints:
+            return Outcome.TOO_FEW_INLIERS
+        if registration.pose_max_error_px < registration.abs_pose_max_error_px:
+            # The pose again from those inliers within pose_max_error_px.
+            inliers = result.inlier_mask
+            _, cams_from_world = _estimate_pose(
+                rays[inliers], camera_index[inliers], xyz[inliers], cams_from_rig,
+                registration.pose_max_error_px * pixel_angles[inliers], 4, seed)
     except solvers.EstimationError:
-        return Outcome.TOO_FEW_INLIERS
-    num_keypoints = sum(len(np.unique(p[:, 0])) for p in pairs_of.values())
-    if result.num_inliers < registration.abs_pose_min_inlier_ratio * num_keypoints:
         return Outcome.TOO_FEW_INLIERS
     if epipolar_support(model, dict(zip(image_ids, cams_from_world)), graph, registration) < \
             registration.min_epipolar_support:
@@ -125,6 +124,23 @@ def register_frame(model: Model, correspondences: Correspondences,
         model.add_observations_within(image_id, inliers[:, 0], inliers[:, 1],
                                       registration.abs_pose_max_error_px)
     return Outcome.REGISTERED
+
+
+def _estimate_pose(rays: np.ndarray, camera_index: np.ndarray, xyz: np.ndarray,
+                   cams_from_rig: list[pycolmap.Rigid3d], max_error: np.ndarray,
+                   min_num_inliers: int, seed: int | None
+                   ) -> tuple[solvers.AbsolutePoseResult | solvers.GeneralizedAbsolutePoseResult,
+                              list[pycolmap.Rigid3d]]:
+    """P3P (one camera) or GP3P (a rig's cameras, `camera_index`) RANSAC: the estimate and
+    each camera's cam_from_world. Raises solvers.EstimationError."""
+    if len(cams_from_rig) == 1:
+        result = solvers.absolute_pose(rays, xyz, max_error=max_error,
+                                       min_num_inliers=min_num_inliers, seed=seed)
+        return result, [result.cam_from_world]
+    result = solvers.generalized_absolute_pose(rays, camera_index, xyz, cams_from_rig,
+                                               max_error=max_error,
+                                               min_num_inliers=min_num_inliers, seed=seed)
+    return result, [cam_from_rig * result.rig_from_world for cam_from_rig in cams_from_rig]
 
 
 def _distinct_pairs(kps: np.ndarray, point_ids: np.ndarray) -> np.ndarray:
@@ -142,12 +158,12 @@ def epipolar_support(model: Model, cams_from_world: dict[int, pycolmap.Rigid3d],
                      graph: dict[int, dict[int, np.ndarray]],
                      registration: RegistrationOptions) -> float:
     """The fraction of the images' verified matches to registered images that the poses
-    `cams_from_world` (image id -> pose) keep within abs_pose_max_error_px of their
-    epipolar lines (1 without such matches).
+    `cams_from_world` (image id -> pose) keep within pose_max_error_px (or
+    abs_pose_max_error_px, if lower) of their epipolar lines (1 without such matches).
 
     Verified matches are true far more often than the pair's own relative pose is right
     (near-planar pairs), so they check a pose where 2D-3D inliers alone cannot."""
-    max_error_px = registration.abs_pose_max_error_px
+    max_error_px = min(registration.pose_max_error_px, registration.abs_pose_max_error_px)
     consistent = total = 0
     for image_id, cam_from_world in cams_from_world.items():
         for other_id, matches in graph.get(image_id, {}).items():
