@@ -55,7 +55,8 @@ def _ceres(start: pycolmap.Reconstruction, loss: str) -> tuple[pycolmap.Reconstr
     return model, summary.ceres_summary.final_cost
 
 
-def _ours(start: pycolmap.Reconstruction, loss: str) -> solvers.BundleAdjustmentResult:
+def _ours(start: pycolmap.Reconstruction, loss: str,
+          num_threads: int = 1) -> solvers.BundleAdjustmentResult:
     """solvers.bundle_adjust on the same problem and gauge as _ceres: the first image's
     frame constant, and the next frame's translation held along its largest baseline."""
     image_ids = sorted(start.reg_image_ids())
@@ -85,7 +86,7 @@ def _ours(start: pycolmap.Reconstruction, loss: str) -> solvers.BundleAdjustment
         frames, free, sensors, image_frame, np.array([start.points3D[p].xyz for p in point_ids]),
         np.ones(len(point_ids), bool), observation_image, observation_point,
         np.concatenate(image_rays), np.concatenate(jacobians), loss=loss, max_iterations=200,
-        gradient_tolerance=1e-12)
+        gradient_tolerance=1e-12, num_threads=num_threads)
 
 
 @pytest.mark.parametrize("camera_model, num_cameras, loss", [
@@ -112,6 +113,23 @@ def test_bundle_adjust_reaches_the_optimum_of_pycolmaps_adjuster(tmp_path, camer
     assert moved > 0.1  # the start is far from the optimum ...
     assert apart < 2e-3  # ... which both reach, to first order in the residuals
     assert result.final_cost == pytest.approx(ceres_cost, rel=1e-4)  # first order, too
+
+
+@pytest.mark.parametrize("num_threads", [2, 3])
+def test_bundle_adjust_on_threads_takes_the_steps_of_one_thread(tmp_path, num_threads):
+    """The residuals and the Schur complement shared among threads: the optimum of one
+    thread (the sums are taken in another order: equal to rounding, so near the optimum
+    the two may stop an iteration apart)."""
+    truth = write_pycolmap_dataset(tmp_path / "database.db", "SIMPLE_RADIAL", seed=3,
+                                   num_images=10, noise_px=1.0, num_points=150)
+    start = _perturbed(truth, seed=4)
+    one, several = _ours(start, "cauchy"), _ours(start, "cauchy", num_threads)
+    assert min(several.iterations, one.iterations) > 3
+    assert several.final_cost == pytest.approx(one.final_cost, rel=1e-9)
+    assert several.final_cost < 0.5 * several.initial_cost
+    np.testing.assert_allclose(several.points3D, one.points3D, atol=1e-8)
+    for a, b in zip(one.rigs_from_world, several.rigs_from_world):
+        assert _rotation_deg(a, b) < 1e-5  # arccos resolves no finer
 
 
 def test_pixels_from_tangent_give_reprojection_errors_to_first_order():

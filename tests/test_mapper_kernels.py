@@ -329,6 +329,28 @@ def posed_views_without_points(folder: Path, num_views: int):
     return model, points3D, views, keypoint_of
 
 
+def test_points_our_adjuster_moves_reach_the_reconstruction_when_it_is_read(tmp_path) -> None:
+    """Our adjuster moves points in Model.xyz alone (move_points); an export and a
+    transform, which read the reconstruction whole, see the moved positions; a point
+    deleted since is left out."""
+    model, points3D, views, keypoint_of = posed_views_without_points(tmp_path, 2)
+    tracked = sorted(set(keypoint_of[0]) & set(keypoint_of[1]))[:3]
+    ids = [model.add_point(points3D[p], {v: keypoint_of[k][p] for k, v in enumerate(views)})
+           for p in tracked]
+    moved = points3D[tracked] + 0.01
+    model.move_points(np.array(ids), moved)
+    assert np.allclose(model.reconstruction.points3D[ids[0]].xyz, points3D[tracked[0]])
+    model.delete_point(ids[2])
+    exported = model.export()
+    assert sorted(exported.points3D) == ids[:2]
+    for point_id, xyz in zip(ids[:2], moved):
+        np.testing.assert_allclose(exported.points3D[point_id].xyz, xyz)
+    model.move_points(np.array(ids[:1]), moved[1:2])
+    model.transform(pycolmap.Sim3d(2.0, pycolmap.Rotation3d(), np.zeros(3)))
+    np.testing.assert_allclose(model.xyz[ids[0]], 2 * moved[1])
+    np.testing.assert_allclose(model.reconstruction.points3D[ids[0]].xyz, 2 * moved[1])
+
+
 def test_track_completion_adds_the_true_observations_within_the_threshold(tmp_path) -> None:
     """Three views of a synthetic ring (0.5 px noise) at their true poses, the true points
     of the first two with those two observations: completing the tracks through the

@@ -116,11 +116,12 @@ def bundle_adjust(model: Model, image_ids: list[int], ba: BundleAdjustmentOption
     if exact or (refine_intrinsics and ba.refines_intrinsics) or ba.refine_sensor_from_rig:
         return _adjust_with_ceres(model, selection, ordered, ba, local, num_threads,
                                   refine_intrinsics, loss, loss_scale_px)
-    return _adjust_calibrated(model, selection, ordered, ba, local, loss, loss_scale_px)
+    return _adjust_calibrated(model, selection, ordered, ba, local, num_threads, loss,
+                              loss_scale_px)
 
 
 def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
-                       ba: BundleAdjustmentOptions, local: bool, loss: str,
+                       ba: BundleAdjustmentOptions, local: bool, num_threads: int, loss: str,
                        loss_scale_px: float) -> int:
     """bundle_adjust with solvers.bundle_adjust, on the keypoints' rays."""
     reconstruction = model.reconstruction
@@ -137,18 +138,15 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
                                               observed_points[keep])
     image_ids, image_index = np.unique(observed_images, return_inverse=True)
     point_ids, point_index = np.unique(observed_points, return_inverse=True)
-    offsets = np.zeros(lookup_size, np.int64)
-    offsets[list(model.flat_offset)] = list(model.flat_offset.values())
-    kps = flat - offsets[observed_images]
-
-    rays = np.zeros((len(flat), 3))
+    rays = model.rays_flat[flat]
+    # The Jacobians camera by camera: they depend on the camera and the ray alone.
+    camera_ids = np.array([model.db.images[i].camera_id for i in image_ids.tolist()])
+    observed_cameras = camera_ids[image_index]
     jacobians = np.zeros((len(flat), 2, 3))
-    frame_ids = []
-    for k, image_id in enumerate(image_ids.tolist()):
-        at = image_index == k
-        rays[at] = model.rays[image_id][kps[at]]
-        jacobians[at] = pixels_from_tangent(model.camera(image_id), rays[at])
-        frame_ids.append(model.frame_id(image_id))
+    for camera_id in np.unique(camera_ids).tolist():
+        at = observed_cameras == camera_id
+        jacobians[at] = pixels_from_tangent(model.reconstruction.cameras[camera_id], rays[at])
+    frame_ids = [model.frame_id(image_id) for image_id in image_ids.tolist()]
     frame_order = sorted(set(frame_ids))
     position = {frame_id: index for index, frame_id in enumerate(frame_order)}
     frame_index = np.array([position[f] for f in frame_ids], np.int32)
@@ -159,7 +157,10 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
     for index, frame_id in enumerate(frame_order):
         free[index] = frame_id in requested_frames and \
             frame_id not in selection.constant_frame_ids
-    held, two_cams = _gauge(reconstruction, ordered, selection.constant_frame_ids, ba)
+    # The gauge from the frames the problem holds (a frame left without observations,
+    # as filtering can leave one at a model's end, stays as it is).
+    held, two_cams = _gauge(reconstruction, [i for i in ordered if model.frame_id(i) in position],
+                            selection.constant_frame_ids, ba)
     for frame_id in held:
         free[position[frame_id]] = False
     if two_cams:
@@ -179,17 +180,16 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
             point_index, rays, jacobians, loss=loss, loss_scale=loss_scale_px,
             max_iterations=max_iterations, gradient_tolerance=gradient_tolerance,
             function_tolerance=ba.least_squares_function_tolerance if loss == "trivial"
-            else ba.function_tolerance, max_step_scale=ba.max_step_scale)
+            else ba.function_tolerance, max_step_scale=ba.max_step_scale,
+            num_threads=num_threads if 2 * len(flat) >= ba.min_num_residuals_for_multi_threading
+            else 1)
     except solvers.EstimationError:
         return 0  # nothing was changed
     for index, frame_id in enumerate(frame_order):
         if free[index].any():
             frames[frame_id].rig_from_world = result.rigs_from_world[index]
     variable = ~constant[point_ids]
-    points = reconstruction.points3D
-    for point_id, xyz in zip(point_ids[variable].tolist(), result.points3D[variable]):
-        points[point_id].xyz = xyz
-    model.xyz[point_ids[variable]] = result.points3D[variable]
+    model.move_points(point_ids[variable], result.points3D[variable])
     return result.iterations
 
 
@@ -198,8 +198,12 @@ def _hold_scale(model: Model, image_ids: Iterable[int], position: dict[int, int]
     """COLMAP's TWO_CAMS_FROM_WORLD gauge on `free` (a row per frame, at `position`):
     the first image's frame (by image id; a constant frame if there is one) constant,
     and of the next frame's translation the coordinate along which it lies farthest from
-    the first, in the first frame's axes."""
-    frames = list(dict.fromkeys(position[model.frame_id(i)] for i in sorted(image_ids)))
+    the first, in the first frame's axes. Frames without observations in the problem
+    have no row, and stay as they are."""
+    frame_ids = [model.frame_id(i) for i in sorted(image_ids)]
+    frames = list(dict.fromkeys(position[f] for f in frame_ids if f in position))
+    if not frames:
+        return
     held = [i for i in frames if not free[i].any()]
     first = held[0] if held else frames[0]
     free[first] = False
@@ -216,6 +220,7 @@ def _adjust_with_ceres(model: Model, selection: _Selection, ordered: list[int],
                        ba: BundleAdjustmentOptions, local: bool, num_threads: int,
                        refine_intrinsics: bool, loss: str, loss_scale_px: float) -> int:
     """bundle_adjust with pycolmap's Ceres adjuster, intrinsics and rigs as the options say."""
+    model.write_points()
     reconstruction = model.reconstruction
     refine_intrinsics = refine_intrinsics and ba.refines_intrinsics
     config = pycolmap.BundleAdjustmentConfig()

@@ -46,12 +46,11 @@ def filter_points(model: Model, image_ids: list[int], filtering: FilteringOption
     candidates = [p for p in touched if model.has_point(p)]
     lengths, images = model.track_images(candidates)
     wide = has_triangulation_angle(model, candidates, lengths, images, filtering.min_tri_angle_deg)
-    removed_points = 0
-    for point_id, track_length, wide_enough in zip(candidates, lengths.tolist(), wide):
-        if not _supported(model, point_id, track_length, wide_enough, filtering, final):
-            model.delete_point(point_id)
-            removed_points += 1
-    return removed_observations, removed_points
+    unsupported = ~_supported(model, np.array(candidates, np.int64), lengths, wide, filtering,
+                              final)
+    for point_id in np.array(candidates, np.int64)[unsupported].tolist():
+        model.delete_point(point_id)
+    return removed_observations, int(np.count_nonzero(unsupported))
 
 
 def error_limit(max_error_px: float, median_error_px: float, noise_max_error_ratio: float,
@@ -90,15 +89,15 @@ def _observation_errors(model: Model, image_id: int) -> tuple[np.ndarray, np.nda
     return kps, point_ids, model.reprojection_errors(image_id, kps, model.xyz[point_ids])
 
 
-def _supported(model: Model, point_id: int, track_length: int, wide_enough: bool,
-               filtering: FilteringOptions, final: bool) -> bool:
-    if track_length < 2:
-        return False
-    age = model.num_registered - model.born[point_id]
-    if track_length < filtering.min_track_length and \
-            (final or age >= filtering.track_grace_registrations):
-        return False
-    return bool(wide_enough)
+def _supported(model: Model, point_ids: np.ndarray, track_lengths: np.ndarray,
+               wide: np.ndarray, filtering: FilteringOptions, final: bool) -> np.ndarray:
+    """Which points keep their place: two observations or more, min_track_length or more
+    unless younger than the grace period (before the end), and a wide enough angle."""
+    long_enough = track_lengths >= filtering.min_track_length
+    if not final:  # young points keep shorter tracks
+        long_enough |= model.num_registered - model.born[point_ids] < \
+            filtering.track_grace_registrations
+    return (track_lengths >= 2) & long_enough & wide
 
 
 def has_triangulation_angle(model: Model, point_ids: list[int], lengths: np.ndarray,

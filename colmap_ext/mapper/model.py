@@ -13,8 +13,10 @@ per image, unit rays in any direction and the angle a pixel spans at each keypoi
 intrinsics change); `point_of`, the point each keypoint observes or -1, an index that
 the edits keep; and `xyz`, the points' positions by point id, read again from the
 reconstruction for the points a step modified (`refresh_points`), as COLMAP's
-`modified_points3D`. A point keeps at least two observations, as in COLMAP: deleting
-one of two deletes the point.
+`modified_points3D`. Our bundle adjuster moves points in `xyz` alone (`move_points`);
+the reconstruction takes their positions when something reads it whole: pycolmap's
+adjuster, a transform, an export (`write_points`). A point keeps at least two
+observations, as in COLMAP: deleting one of two deletes the point.
 """
 
 from __future__ import annotations
@@ -105,15 +107,19 @@ class Model:
         self.flat_offset = dict(zip(self.image_ids, starts[:-1].tolist()))
         self.point_of_flat = np.full(int(starts[-1]), -1, dtype=np.int64)
         self.image_of_flat = np.repeat(np.array(self.image_ids, np.int32), sizes)
+        self.rays_flat = np.zeros((int(starts[-1]), 3))  # rays[image_id] are views of it
         self.point_of: dict[int, np.ndarray] = {}
         for image_id, start, stop in zip(self.image_ids, starts[:-1], starts[1:]):
             self.keypoints[image_id] = db.images[image_id].keypoints
             self.point_of[image_id] = self.point_of_flat[start:stop]
         self.refresh_cameras()
         self.xyz = np.zeros((1024, 3))
+        # Per point id, the number of registered images when the point was made, and
+        # whether the reconstruction holds an older position than xyz (move_points).
+        self.born = np.zeros(len(self.xyz), np.int64)
+        self._moved = np.zeros(len(self.xyz), bool)
         self.fixed_frame_ids: set[int] = set()  # frames whose poses bundle adjustment holds
         self.registration_order: list[int] = []  # image ids
-        self.born: dict[int, int] = {}  # point id -> number of registered images at creation
         # Images whose observations changed since the mapper last looked (take_changed).
         self._changed: set[int] = set()
         self._noted_unprojectable = False
@@ -134,7 +140,9 @@ class Model:
             angles = pixel_angles(camera, keypoints)
             angles[~np.isfinite(ray).all(axis=1)] = np.nan
             ray[~np.isfinite(angles)] = (0.0, 0.0, 1.0)
-            self.rays[image_id] = ray
+            start = self.flat_offset[image_id]
+            self.rays_flat[start:start + len(ray)] = ray
+            self.rays[image_id] = self.rays_flat[start:start + len(ray)]
             self.pixel_angles[image_id] = angles
 
     # --- frames and poses -------------------------------------------------------
@@ -209,7 +217,10 @@ class Model:
                                  for image_id, kp in track.items()]))
         while point_id >= len(self.xyz):
             self.xyz = np.vstack([self.xyz, np.zeros_like(self.xyz)])
+            self.born = np.concatenate([self.born, np.zeros_like(self.born)])
+            self._moved = np.concatenate([self._moved, np.zeros_like(self._moved)])
         self.xyz[point_id] = xyz
+        self._moved[point_id] = False
         self.born[point_id] = self.num_registered
         for image_id, kp in track.items():
             self.point_of[image_id][kp] = point_id
@@ -266,7 +277,6 @@ class Model:
         for image_id, kp in track.items():
             self.point_of[image_id][kp] = -1
         self._changed.update(track)
-        del self.born[point_id]
         self.reconstruction.delete_point3D(point_id)
 
     def has_point(self, point_id: int) -> bool:
@@ -297,13 +307,29 @@ class Model:
         return np.bincount(owner, minlength=len(point_ids)), self.image_of_flat[flat[order]]
 
     def refresh_points(self, point_ids: Iterable[int]) -> None:
-        """Read the positions of `point_ids` (a step moved them) into `xyz`."""
+        """Read the positions of `point_ids` (a step moved them in the reconstruction)
+        into `xyz`."""
         points = self.reconstruction.points3D
         for point_id in point_ids:
             self.xyz[point_id] = points[point_id].xyz
 
+    def move_points(self, point_ids: np.ndarray, xyz: np.ndarray) -> None:
+        """Set the positions of `point_ids` in `xyz`; the reconstruction takes them at
+        the next write_points."""
+        self.xyz[point_ids] = xyz
+        self._moved[point_ids] = True
+
+    def write_points(self) -> None:
+        """Give the reconstruction the positions move_points set since the last call."""
+        points = self.reconstruction.points3D
+        for point_id in np.flatnonzero(self._moved).tolist():
+            if self.has_point(point_id):
+                points[point_id].xyz = self.xyz[point_id]
+        self._moved[:] = False
+
     def transform(self, similarity: pycolmap.Sim3d) -> None:
         """Move every pose and point by a similarity."""
+        self.write_points()
         self.reconstruction.transform(similarity)
         self.refresh_points(self.point_ids)
 
@@ -370,6 +396,7 @@ class Model:
     def export(self) -> pycolmap.Reconstruction:
         """A copy of the model with its registered images alone (COLMAP's TearDown),
         point ids kept and their errors computed."""
+        self.write_points()
         reconstruction = pycolmap.Reconstruction(self.reconstruction)
         reconstruction.tear_down()
         reconstruction.update_point_3d_errors()

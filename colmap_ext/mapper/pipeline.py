@@ -91,7 +91,9 @@ class IncrementalMapper:
         while self._register_next():
             pass
         if self.final_adjustment:
-            self.adjuster.global_adjustment(final=True)
+            # Retriangulation, where it follows, ends the model on an exact adjustment.
+            self.adjuster.global_adjustment(
+                final=True, exact=not self.options.triangulation.retriangulates)
         else:
             with self.timer("filtering"):
                 filter_points(self.model, self.model.registered, self.options.filtering,

@@ -95,20 +95,23 @@ class ModelAdjuster:
         with self.timer("filtering"):
             filter_points(self.model, image_ids, self.filtering)
 
-    def global_adjustment(self, final: bool = False, rounds: int = 2) -> None:
-        """Adjust every registered image, then filter. `final`, the model's end, on the
-        camera model's own reprojection errors (bundle_adjust's `exact`): `rounds`
-        rounds, their filter also relative to the model's median error
+    def global_adjustment(self, final: bool = False, rounds: int = 2,
+                          exact: bool = True) -> None:
+        """Adjust every registered image, then filter. `final`, the model's end:
+        `rounds` rounds, their filter also relative to the model's median error
         (final_max_error_ratio), and one more adjustment if the last filter dropped
-        observations or the errors it left call for another loss. A round whose filter
-        removed nothing ends the rounds: the next would solve the same problem again from
-        its optimum."""
+        observations or the errors it left call for another loss; on the camera model's
+        own reprojection errors (bundle_adjust's `exact`) unless `exact` is False (a
+        model retriangulated after it, whose last adjustment is exact). A round whose
+        filter removed nothing ends the rounds: the next would solve the same problem
+        again from its optimum."""
+        exact = final and exact
         model = self.model
         registered = model.registered
         ratio = self.filtering.final_max_error_ratio if final else 0.0
         for _ in range(rounds if final else 1):
             self._follow_errors()
-            self._bundle_adjust(registered, local=False, refine_intrinsics=True, exact=final)
+            self._bundle_adjust(registered, local=False, refine_intrinsics=True, exact=exact)
             with self.timer("filtering"):
                 removed, removed_points = filter_points(model, registered, self.filtering,
                                                         final=final, max_error_ratio=ratio)
@@ -118,7 +121,7 @@ class ModelAdjuster:
             loss = self.loss
             self._follow_errors()
             if ratio > 0 and removed or self.loss != loss:
-                self._bundle_adjust(registered, local=False, refine_intrinsics=True, exact=True)
+                self._bundle_adjust(registered, local=False, refine_intrinsics=True, exact=exact)
 
     def _follow_errors(self) -> None:
         """Choose the loss and its scale from the registered images' reprojection errors."""
@@ -179,6 +182,7 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     point_ids = points_off_matches(model, matches, limit) if gaussian else model.point_ids
     if gaussian and not point_ids:
         timer.counts["retriangulations left out"] += 1
+        ModelAdjuster.of(model, options, timer).global_adjustment(final=True, rounds=1)
         return model.reconstruction.num_points3D()
     graphs = MatchGraphs.of(model, matches)
     strict = dataclasses.replace(triangulation, max_reproj_error_px=limit)

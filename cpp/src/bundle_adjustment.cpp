@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <cmath>
 #include <limits>
+#include <thread>
 #include <unordered_map>
 
 namespace colmap_ext {
@@ -28,6 +29,19 @@ constexpr double kMinDiagonal = 1e-6;
 constexpr double kMaxDiagonal = 1e32;
 // The squared residual (px^2) an observation behind its ray's tangent plane counts as.
 constexpr double kBehindSquaredResidual = 1e12;
+
+// body(begin, end, thread) over [0, n) in `num_threads` contiguous chunks, the first
+// on the calling thread. The chunks depend on n and num_threads alone, so sums taken
+// per thread and added in thread order give the same result on every run.
+template <typename Body>
+void parallel_for(int num_threads, size_t n, const Body& body) {
+  const size_t threads = std::max<size_t>(1, std::min<size_t>(num_threads, n));
+  std::vector<std::thread> workers;
+  for (size_t t = 1; t < threads; ++t)
+    workers.emplace_back([&body, t, n, threads] { body(n * t / threads, n * (t + 1) / threads, t); });
+  body(0, n / threads, 0);
+  for (std::thread& worker : workers) worker.join();
+}
 
 // rho(s) and rho'(s) of the squared residual s, as Ceres's losses with scale a.
 std::pair<double, double> loss_value(Loss loss, double a, double s) {
@@ -70,7 +84,7 @@ class Adjuster {
            const std::vector<BundleObservation>& observations, const BundleOptions& options)
       : frames_(frames), free_(free), sensors_(sensors), image_frame_(image_frame),
         points_(points), point_variable_(point_variable), observations_(observations),
-        options_(options) {
+        options_(options), num_threads_(std::max(1, options.num_threads)) {
     frame_block_.assign(frames.size(), -1);
     for (size_t f = 0; f < frames.size(); ++f)
       if (free[f].any()) frame_block_[f] = num_blocks_++;
@@ -167,56 +181,82 @@ class Adjuster {
   }
 
   double evaluate_cost() const {
+    std::vector<double> partial_cost(num_threads_, 0.0);
+    parallel_for(num_threads_, observations_.size(), [&](size_t begin, size_t end, size_t t) {
+      double cost = 0.0;
+      Eigen::Vector2d residual;
+      for (size_t o = begin; o < end; ++o) {
+        const BundleObservation& obs = observations_[o];
+        cost += loss_value(options_.loss, options_.loss_scale,
+                           squared_residual(obs, camera_from_world(obs.image), &residual)).first;
+      }
+      partial_cost[t] = cost;
+    });
     double cost = 0.0;
-    Eigen::Vector2d residual;
-    for (const BundleObservation& obs : observations_) {
-      const Pose cam = camera_from_world(obs.image);
-      cost += loss_value(options_.loss, options_.loss_scale,
-                         squared_residual(obs, cam, &residual)).first;
-    }
+    for (const double c : partial_cost) cost += c;
     return 0.5 * cost;
   }
 
   // Residuals and Jacobians at the current parameters, and the gradient. Returns the cost.
   double linearise() {
-    double cost = 0.0;
-    frame_gradient_.assign(num_blocks_, Vector6d::Zero());
+    std::vector<double> partial_cost(num_threads_, 0.0);
+    std::vector<std::vector<Vector6d>> partial_gradient(
+        num_threads_, std::vector<Vector6d>(num_blocks_, Vector6d::Zero()));
+    parallel_for(num_threads_, observations_.size(), [&](size_t begin, size_t end, size_t t) {
+      double cost = 0.0;
+      std::vector<Vector6d>& frame_gradient = partial_gradient[t];
+      for (size_t o = begin; o < end; ++o) cost += linearise(o, frame_gradient);
+      partial_cost[t] = cost;
+    });
+    frame_gradient_ = std::move(partial_gradient[0]);
+    for (int t = 1; t < num_threads_; ++t)
+      for (int b = 0; b < num_blocks_; ++b) frame_gradient_[b] += partial_gradient[t][b];
+    // Each point's gradient from its observations (in their order), point by point.
     point_gradient_.assign(points_.size(), Eigen::Vector3d::Zero());
-    for (size_t o = 0; o < observations_.size(); ++o) {
-      const BundleObservation& obs = observations_[o];
-      Linearised& lin = linearised_[o];
-      const int frame = image_frame_[obs.image];
-      const Pose& sensor = sensors_[obs.image];
-      const Pose cam = camera_from_world(obs.image);
-      Eigen::Vector2d residual;
-      const double s = squared_residual(obs, cam, &residual);
-      const auto [rho, rho1] = loss_value(options_.loss, options_.loss_scale, s);
-      cost += rho;
-      lin = Linearised();
-      if (s >= kBehindSquaredResidual) continue;
-      const double weight = std::sqrt(rho1);
-      const Eigen::Vector3d rig_point = frames_[frame].R * points_[obs.point];
-      const Eigen::Vector3d y = sensor.R * (rig_point + frames_[frame].t) + sensor.t;
-      const double along = obs.ray.dot(y);
-      // d residual / d y of r = P (y / (ray . y) - ray).
-      const Matrix23d dr_dy =
-          weight * (obs.pixels_from_tangent - (obs.pixels_from_tangent * y / along) *
-                                                  obs.ray.transpose()) / along;
-      lin.residual = weight * residual;
-      if (frame_block_[frame] >= 0) {
-        const Matrix23d dr_drig = dr_dy * sensor.R;  // y = R_s (R w X + t + dt) + t_s
-        lin.frame_jacobian.leftCols<3>() = -dr_drig * skew(rig_point);
-        lin.frame_jacobian.rightCols<3>() = dr_drig;
-        for (int k = 0; k < 6; ++k)
-          if (!free_[frame](k)) lin.frame_jacobian.col(k).setZero();
-        frame_gradient_[frame_block_[frame]] += lin.frame_jacobian.transpose() * lin.residual;
-      }
-      if (point_variable_[obs.point]) {
-        lin.point_jacobian = dr_dy * cam.R;
-        point_gradient_[obs.point] += lin.point_jacobian.transpose() * lin.residual;
-      }
-    }
+    parallel_for(num_threads_, points_.size(), [&](size_t begin, size_t end, size_t) {
+      for (size_t p = begin; p < end; ++p)
+        for (int k = point_start_[p]; k < point_start_[p + 1]; ++k) {
+          const Linearised& lin = linearised_[point_observations_[k]];
+          point_gradient_[p] += lin.point_jacobian.transpose() * lin.residual;
+        }
+    });
+    double cost = 0.0;
+    for (const double c : partial_cost) cost += c;
     return 0.5 * cost;
+  }
+
+  // Observation o linearised into linearised_[o], its frame's gradient added to
+  // `frame_gradient`. Returns rho of its squared residual.
+  double linearise(size_t o, std::vector<Vector6d>& frame_gradient) {
+    const BundleObservation& obs = observations_[o];
+    Linearised& lin = linearised_[o];
+    const int frame = image_frame_[obs.image];
+    const Pose& sensor = sensors_[obs.image];
+    const Pose cam = camera_from_world(obs.image);
+    Eigen::Vector2d residual;
+    const double s = squared_residual(obs, cam, &residual);
+    const auto [rho, rho1] = loss_value(options_.loss, options_.loss_scale, s);
+    lin = Linearised();
+    if (s >= kBehindSquaredResidual) return rho;
+    const double weight = std::sqrt(rho1);
+    const Eigen::Vector3d rig_point = frames_[frame].R * points_[obs.point];
+    const Eigen::Vector3d y = sensor.R * (rig_point + frames_[frame].t) + sensor.t;
+    const double along = obs.ray.dot(y);
+    // d residual / d y of r = P (y / (ray . y) - ray).
+    const Matrix23d dr_dy =
+        weight * (obs.pixels_from_tangent - (obs.pixels_from_tangent * y / along) *
+                                                obs.ray.transpose()) / along;
+    lin.residual = weight * residual;
+    if (frame_block_[frame] >= 0) {
+      const Matrix23d dr_drig = dr_dy * sensor.R;  // y = R_s (R w X + t + dt) + t_s
+      lin.frame_jacobian.leftCols<3>() = -dr_drig * skew(rig_point);
+      lin.frame_jacobian.rightCols<3>() = dr_drig;
+      for (int k = 0; k < 6; ++k)
+        if (!free_[frame](k)) lin.frame_jacobian.col(k).setZero();
+      frame_gradient[frame_block_[frame]] += lin.frame_jacobian.transpose() * lin.residual;
+    }
+    if (point_variable_[obs.point]) lin.point_jacobian = dr_dy * cam.R;
+    return rho;
   }
 
   // Ceres's gradient check, max |x - Plus(x, -g)|: on a rotation the change of its unit
@@ -245,85 +285,118 @@ class Adjuster {
     return norm;
   }
 
+  // The reduced camera system S x = rhs (its upper block triangle), one per thread.
+  struct ReducedSystem {
+    ReducedSystem(int n, bool dense) : n(n), dense(dense), rhs(Eigen::VectorXd::Zero(6 * n)) {
+      if (dense) matrix = Eigen::MatrixXd::Zero(6 * n, 6 * n);
+    }
+    void add_block(int a, int b, const Matrix6d& block) {
+      if (a > b) return;
+      if (dense) {
+        matrix.block<6, 6>(6 * a, 6 * b) += block;
+      } else {
+        auto [it, inserted] = blocks.try_emplace(static_cast<int64_t>(a) * n + b, block);
+        if (!inserted) it->second += block;
+      }
+    }
+    void add(const ReducedSystem& other) {
+      rhs += other.rhs;
+      if (dense) {
+        matrix.triangularView<Eigen::Upper>() += other.matrix;
+      } else {
+        for (const auto& [key, block] : other.blocks) {
+          auto [it, inserted] = blocks.try_emplace(key, block);
+          if (!inserted) it->second += block;
+        }
+      }
+    }
+    int n;
+    bool dense;
+    Eigen::VectorXd rhs;
+    Eigen::MatrixXd matrix;
+    std::unordered_map<int64_t, Matrix6d> blocks;
+  };
+
   // The Levenberg-Marquardt step with damping mu: (H + mu D) x = -g, H = J^T J, D its
   // diagonal (clamped as Ceres's), points eliminated first.
   bool solve_step(double mu, Step& step) {
     const int n = num_blocks_;
-    std::vector<Matrix6d> frame_hessian(n, Matrix6d::Zero());
-    for (size_t o = 0; o < observations_.size(); ++o) {
-      const int block = frame_block_[image_frame_[observations_[o].image]];
-      if (block >= 0)
-        frame_hessian[block] += linearised_[o].frame_jacobian.transpose() *
-                                linearised_[o].frame_jacobian;
-    }
+    std::vector<std::vector<Matrix6d>> partial_hessian(
+        num_threads_, std::vector<Matrix6d>(n, Matrix6d::Zero()));
+    parallel_for(num_threads_, observations_.size(), [&](size_t begin, size_t end, size_t t) {
+      std::vector<Matrix6d>& hessian = partial_hessian[t];
+      for (size_t o = begin; o < end; ++o) {
+        const int block = frame_block_[image_frame_[observations_[o].image]];
+        if (block >= 0)
+          hessian[block] += linearised_[o].frame_jacobian.transpose() *
+                            linearised_[o].frame_jacobian;
+      }
+    });
+    std::vector<Matrix6d>& frame_hessian = partial_hessian[0];
+    for (int t = 1; t < num_threads_; ++t)
+      for (int b = 0; b < n; ++b) frame_hessian[b] += partial_hessian[t][b];
     std::vector<Vector6d> frame_diagonal(n);
     for (int b = 0; b < n; ++b) {
       frame_diagonal[b] = frame_hessian[b].diagonal().cwiseMax(kMinDiagonal).cwiseMin(kMaxDiagonal);
       frame_hessian[b].diagonal() += mu * frame_diagonal[b];
     }
-    // Reduced camera system S x = rhs, its upper block triangle.
     const bool dense = n <= kMaxDenseFrames;
-    Eigen::MatrixXd dense_system;
-    std::unordered_map<int64_t, Matrix6d> sparse_blocks;
-    if (dense) dense_system = Eigen::MatrixXd::Zero(6 * n, 6 * n);
-    auto add_block = [&](int a, int b, const Matrix6d& block) {
-      if (a > b) return;
-      if (dense) {
-        dense_system.block<6, 6>(6 * a, 6 * b) += block;
-      } else {
-        auto [it, inserted] = sparse_blocks.try_emplace(static_cast<int64_t>(a) * n + b, block);
-        if (!inserted) it->second += block;
-      }
-    };
-    for (int b = 0; b < n; ++b) add_block(b, b, frame_hessian[b]);
-    Eigen::VectorXd rhs(6 * n);
-    for (int b = 0; b < n; ++b) rhs.segment<6>(6 * b) = -frame_gradient_[b];
+    std::vector<ReducedSystem> systems;
+    for (int t = 0; t < num_threads_; ++t) systems.emplace_back(n, dense);
+    for (int b = 0; b < n; ++b) {
+      systems[0].add_block(b, b, frame_hessian[b]);
+      systems[0].rhs.segment<6>(6 * b) = -frame_gradient_[b];
+    }
 
+    // Each point eliminated into its thread's system.
     std::vector<Eigen::Matrix3d> point_inverse(points_.size());
     std::vector<Eigen::Vector3d> point_diagonal(points_.size());
-    std::vector<Matrix63d> coupling;  // frame-point blocks of the point's observations
-    std::vector<int> coupling_block;
-    step.predicted_decrease = 0.0;
-    double damping_term = 0.0;
-    for (size_t p = 0; p < points_.size(); ++p) {
-      if (!point_variable_[p]) continue;
-      Eigen::Matrix3d hessian = Eigen::Matrix3d::Zero();
-      coupling.clear();
-      coupling_block.clear();
-      for (int k = point_start_[p]; k < point_start_[p + 1]; ++k) {
-        const int o = point_observations_[k];
-        const Linearised& lin = linearised_[o];
-        hessian += lin.point_jacobian.transpose() * lin.point_jacobian;
-        const int block = frame_block_[image_frame_[observations_[o].image]];
-        if (block >= 0) {
-          coupling.push_back(lin.frame_jacobian.transpose() * lin.point_jacobian);
-          coupling_block.push_back(block);
+    std::vector<char> singular(num_threads_, 0);
+    parallel_for(num_threads_, points_.size(), [&](size_t begin, size_t end, size_t t) {
+      ReducedSystem& system = systems[t];
+      std::vector<Matrix63d> coupling;  // frame-point blocks of the point's observations
+      std::vector<int> coupling_block;
+      for (size_t p = begin; p < end; ++p) {
+        if (!point_variable_[p]) continue;
+        Eigen::Matrix3d hessian = Eigen::Matrix3d::Zero();
+        coupling.clear();
+        coupling_block.clear();
+        for (int k = point_start_[p]; k < point_start_[p + 1]; ++k) {
+          const int o = point_observations_[k];
+          const Linearised& lin = linearised_[o];
+          hessian += lin.point_jacobian.transpose() * lin.point_jacobian;
+          const int block = frame_block_[image_frame_[observations_[o].image]];
+          if (block >= 0) {
+            coupling.push_back(lin.frame_jacobian.transpose() * lin.point_jacobian);
+            coupling_block.push_back(block);
+          }
+        }
+        point_diagonal[p] = hessian.diagonal().cwiseMax(kMinDiagonal).cwiseMin(kMaxDiagonal);
+        hessian.diagonal() += mu * point_diagonal[p];
+        bool invertible = false;
+        hessian.computeInverseWithCheck(point_inverse[p], invertible);
+        if (!invertible) {
+          singular[t] = 1;
+          return;
+        }
+        for (size_t i = 0; i < coupling.size(); ++i) {
+          const Matrix63d left = coupling[i] * point_inverse[p];
+          system.rhs.segment<6>(6 * coupling_block[i]) += left * point_gradient_[p];
+          for (size_t j = 0; j < coupling.size(); ++j) {
+            if (coupling_block[i] <= coupling_block[j])
+              system.add_block(coupling_block[i], coupling_block[j],
+                               -left * coupling[j].transpose());
+          }
         }
       }
-      point_diagonal[p] = hessian.diagonal().cwiseMax(kMinDiagonal).cwiseMin(kMaxDiagonal);
-      hessian.diagonal() += mu * point_diagonal[p];
-      bool invertible = false;
-      hessian.computeInverseWithCheck(point_inverse[p], invertible);
-      if (!invertible) return false;
-      for (size_t i = 0; i < coupling.size(); ++i) {
-        const Matrix63d left = coupling[i] * point_inverse[p];
-        rhs.segment<6>(6 * coupling_block[i]) += left * point_gradient_[p];
-        for (size_t j = 0; j < coupling.size(); ++j) {
-          if (coupling_block[i] <= coupling_block[j])
-            add_block(coupling_block[i], coupling_block[j],
-                      -left * coupling[j].transpose());
-        }
-      }
-    }
+    });
+    for (int t = 0; t < num_threads_; ++t)
+      if (singular[t]) return false;
+    ReducedSystem& system = systems[0];
+    for (int t = 1; t < num_threads_; ++t) system.add(systems[t]);
+    Eigen::VectorXd& rhs = system.rhs;
+
     // Fixed parameters of free frames (the gauge): x = 0 there.
-    auto fix = [&](int index) {
-      rhs(index) = 0.0;
-      if (dense) {
-        dense_system.row(index).setZero();
-        dense_system.col(index).setZero();
-        dense_system(index, index) = 1.0;
-      }
-    };
     std::vector<char> fixed(6 * n, 0);
     for (size_t f = 0; f < frames_.size(); ++f)
       if (frame_block_[f] >= 0)
@@ -332,14 +405,19 @@ class Adjuster {
     Eigen::VectorXd x;
     if (dense) {
       for (int i = 0; i < 6 * n; ++i)
-        if (fixed[i]) fix(i);
-      Eigen::LLT<Eigen::MatrixXd, Eigen::Upper> llt(dense_system);
+        if (fixed[i]) {
+          rhs(i) = 0.0;
+          system.matrix.row(i).setZero();
+          system.matrix.col(i).setZero();
+          system.matrix(i, i) = 1.0;
+        }
+      Eigen::LLT<Eigen::MatrixXd, Eigen::Upper> llt(system.matrix);
       if (llt.info() != Eigen::Success) return false;
       x = llt.solve(rhs);
     } else {
       std::vector<Eigen::Triplet<double>> triplets;
-      triplets.reserve(sparse_blocks.size() * 36);
-      for (const auto& [key, block] : sparse_blocks) {
+      triplets.reserve(system.blocks.size() * 36);
+      for (const auto& [key, block] : system.blocks) {
         const int a = static_cast<int>(key / n), b = static_cast<int>(key % n);
         for (int r = 0; r < 6; ++r)
           for (int c = 0; c < 6; ++c) {
@@ -353,41 +431,49 @@ class Adjuster {
           triplets.emplace_back(i, i, 1.0);
           rhs(i) = 0.0;
         }
-      Eigen::SparseMatrix<double> system(6 * n, 6 * n);
-      system.setFromTriplets(triplets.begin(), triplets.end());
-      Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Upper> ldlt(system);
+      Eigen::SparseMatrix<double> sparse(6 * n, 6 * n);
+      sparse.setFromTriplets(triplets.begin(), triplets.end());
+      Eigen::SimplicialLDLT<Eigen::SparseMatrix<double>, Eigen::Upper> ldlt(sparse);
       if (ldlt.info() != Eigen::Success) return false;
       x = ldlt.solve(rhs);
     }
     if (!x.allFinite()) return false;
 
     step.frames.assign(frames_.size(), Vector6d::Zero());
-    double gradient_term = 0.0;
+    // The model's decrease, -g.x - x^T H x / 2 with (H + mu D) x = -g: its terms g.x
+    // and x^T D x, the frames' first, then each thread's points.
+    std::vector<double> gradient_term(num_threads_, 0.0), damping_term(num_threads_, 0.0);
     for (size_t f = 0; f < frames_.size(); ++f) {
       const int block = frame_block_[f];
       if (block < 0) continue;
       step.frames[f] = x.segment<6>(6 * block);
-      gradient_term += frame_gradient_[block].dot(step.frames[f]);
-      damping_term += step.frames[f].dot(frame_diagonal[block].cwiseProduct(step.frames[f]));
+      gradient_term[0] += frame_gradient_[block].dot(step.frames[f]);
+      damping_term[0] += step.frames[f].dot(frame_diagonal[block].cwiseProduct(step.frames[f]));
     }
     step.points.assign(points_.size(), Eigen::Vector3d::Zero());
-    for (size_t p = 0; p < points_.size(); ++p) {
-      if (!point_variable_[p]) continue;
-      Eigen::Vector3d b = -point_gradient_[p];
-      for (int k = point_start_[p]; k < point_start_[p + 1]; ++k) {
-        const int o = point_observations_[k];
-        const Linearised& lin = linearised_[o];
-        const int frame = image_frame_[observations_[o].image];
-        if (frame_block_[frame] >= 0)
-          b -= (lin.frame_jacobian.transpose() * lin.point_jacobian).transpose() *
-               step.frames[frame];
+    parallel_for(num_threads_, points_.size(), [&](size_t begin, size_t end, size_t t) {
+      for (size_t p = begin; p < end; ++p) {
+        if (!point_variable_[p]) continue;
+        Eigen::Vector3d b = -point_gradient_[p];
+        for (int k = point_start_[p]; k < point_start_[p + 1]; ++k) {
+          const int o = point_observations_[k];
+          const Linearised& lin = linearised_[o];
+          const int frame = image_frame_[observations_[o].image];
+          if (frame_block_[frame] >= 0)
+            b -= (lin.frame_jacobian.transpose() * lin.point_jacobian).transpose() *
+                 step.frames[frame];
+        }
+        step.points[p] = point_inverse[p] * b;
+        gradient_term[t] += point_gradient_[p].dot(step.points[p]);
+        damping_term[t] += step.points[p].dot(point_diagonal[p].cwiseProduct(step.points[p]));
       }
-      step.points[p] = point_inverse[p] * b;
-      gradient_term += point_gradient_[p].dot(step.points[p]);
-      damping_term += step.points[p].dot(point_diagonal[p].cwiseProduct(step.points[p]));
+    });
+    double gradient = 0.0, damping = 0.0;
+    for (int t = 0; t < num_threads_; ++t) {
+      gradient += gradient_term[t];
+      damping += damping_term[t];
     }
-    // The model's decrease, -g.x - x^T H x / 2, with (H + mu D) x = -g.
-    step.predicted_decrease = 0.5 * (-gradient_term + mu * damping_term);
+    step.predicted_decrease = 0.5 * (-gradient + mu * damping);
     return std::isfinite(step.predicted_decrease);
   }
 
@@ -410,6 +496,7 @@ class Adjuster {
   const std::vector<char>& point_variable_;
   const std::vector<BundleObservation>& observations_;
   const BundleOptions& options_;
+  const int num_threads_;
   std::vector<int> frame_block_;
   int num_blocks_ = 0;
   std::vector<int> point_start_, point_observations_;

@@ -28,6 +28,7 @@ struct BundleOptions {
   double gradient_tolerance = 1.0;
   double function_tolerance = 0.0;
   double max_step_scale = 16.0;  // largest multiple of an accepted step tried (1: none)
+  int num_threads = 1;  // threads for the residuals and the Schur complement
 };
 
 struct BundleSummary {
