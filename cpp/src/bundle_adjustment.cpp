@@ -163,14 +163,17 @@ class Adjuster {
     double predicted_decrease = 0.0;
   };
 
-  Pose camera_from_world(int image) const {
-    return compose(sensors_[image], frames_[image_frame_[image]]);
+  // Every image's cam_from_world at the current frame poses.
+  std::vector<Pose> cameras_from_world() const {
+    std::vector<Pose> cameras(sensors_.size());
+    for (size_t i = 0; i < sensors_.size(); ++i)
+      cameras[i] = compose(sensors_[i], frames_[image_frame_[i]]);
+    return cameras;
   }
 
-  // Squared residual of one observation (px^2), and its camera-frame point.
-  double squared_residual(const BundleObservation& obs, const Pose& cam,
-                          Eigen::Vector2d* residual) const {
-    const Eigen::Vector3d y = cam.R * points_[obs.point] + cam.t;
+  // Squared residual (px^2) of an observation whose point lies at y in its camera's frame.
+  static double squared_residual(const BundleObservation& obs, const Eigen::Vector3d& y,
+                                 Eigen::Vector2d* residual) {
     const double along = obs.ray.dot(y);
     if (!(along > 1e-12 * y.norm())) {
       residual->setZero();
@@ -181,14 +184,17 @@ class Adjuster {
   }
 
   double evaluate_cost() const {
+    const std::vector<Pose> cameras = cameras_from_world();
     std::vector<double> partial_cost(num_threads_, 0.0);
     parallel_for(num_threads_, observations_.size(), [&](size_t begin, size_t end, size_t t) {
       double cost = 0.0;
       Eigen::Vector2d residual;
       for (size_t o = begin; o < end; ++o) {
         const BundleObservation& obs = observations_[o];
+        const Pose& cam = cameras[obs.image];
         cost += loss_value(options_.loss, options_.loss_scale,
-                           squared_residual(obs, camera_from_world(obs.image), &residual)).first;
+                           squared_residual(obs, cam.R * points_[obs.point] + cam.t,
+                                            &residual)).first;
       }
       partial_cost[t] = cost;
     });
@@ -199,13 +205,14 @@ class Adjuster {
 
   // Residuals and Jacobians at the current parameters, and the gradient. Returns the cost.
   double linearise() {
+    const std::vector<Pose> cameras = cameras_from_world();
     std::vector<double> partial_cost(num_threads_, 0.0);
     std::vector<std::vector<Vector6d>> partial_gradient(
         num_threads_, std::vector<Vector6d>(num_blocks_, Vector6d::Zero()));
     parallel_for(num_threads_, observations_.size(), [&](size_t begin, size_t end, size_t t) {
       double cost = 0.0;
       std::vector<Vector6d>& frame_gradient = partial_gradient[t];
-      for (size_t o = begin; o < end; ++o) cost += linearise(o, frame_gradient);
+      for (size_t o = begin; o < end; ++o) cost += linearise(o, cameras, frame_gradient);
       partial_cost[t] = cost;
     });
     frame_gradient_ = std::move(partial_gradient[0]);
@@ -225,22 +232,21 @@ class Adjuster {
     return 0.5 * cost;
   }
 
-  // Observation o linearised into linearised_[o], its frame's gradient added to
-  // `frame_gradient`. Returns rho of its squared residual.
-  double linearise(size_t o, std::vector<Vector6d>& frame_gradient) {
+  // Observation o linearised into linearised_[o] (its camera's pose among `cameras`), its
+  // frame's gradient added to `frame_gradient`. Returns rho of its squared residual.
+  double linearise(size_t o, const std::vector<Pose>& cameras,
+                   std::vector<Vector6d>& frame_gradient) {
     const BundleObservation& obs = observations_[o];
     Linearised& lin = linearised_[o];
     const int frame = image_frame_[obs.image];
-    const Pose& sensor = sensors_[obs.image];
-    const Pose cam = camera_from_world(obs.image);
+    const Pose& cam = cameras[obs.image];
+    const Eigen::Vector3d y = cam.R * points_[obs.point] + cam.t;
     Eigen::Vector2d residual;
-    const double s = squared_residual(obs, cam, &residual);
+    const double s = squared_residual(obs, y, &residual);
     const auto [rho, rho1] = loss_value(options_.loss, options_.loss_scale, s);
     lin = Linearised();
     if (s >= kBehindSquaredResidual) return rho;
     const double weight = std::sqrt(rho1);
-    const Eigen::Vector3d rig_point = frames_[frame].R * points_[obs.point];
-    const Eigen::Vector3d y = sensor.R * (rig_point + frames_[frame].t) + sensor.t;
     const double along = obs.ray.dot(y);
     // d residual / d y of r = P (y / (ray . y) - ray).
     const Matrix23d dr_dy =
@@ -248,8 +254,9 @@ class Adjuster {
                                                 obs.ray.transpose()) / along;
     lin.residual = weight * residual;
     if (frame_block_[frame] >= 0) {
+      const Pose& sensor = sensors_[obs.image];
       const Matrix23d dr_drig = dr_dy * sensor.R;  // y = R_s (R w X + t + dt) + t_s
-      lin.frame_jacobian.leftCols<3>() = -dr_drig * skew(rig_point);
+      lin.frame_jacobian.leftCols<3>() = -dr_drig * skew(frames_[frame].R * points_[obs.point]);
       lin.frame_jacobian.rightCols<3>() = dr_drig;
       for (int k = 0; k < 6; ++k)
         if (!free_[frame](k)) lin.frame_jacobian.col(k).setZero();
