@@ -257,7 +257,7 @@ def ring_arcs(db, options, monkeypatch) -> tuple[list[Model], dict]:
     and its verified matches."""
     handed = []
     monkeypatch.setattr(pipeline, "merge_models",
-                        lambda models, matches, *_: handed.append((models, matches)) or models)
+                        lambda models, matches, *_, **__: handed.append((models, matches)) or models)
     reconstruct(db, options, progress=False)
     monkeypatch.undo()
     [([model], matches)] = handed

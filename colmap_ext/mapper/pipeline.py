@@ -318,8 +318,10 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
             matches = {p: m for p, m in matches.items() if p[0] in remaining and p[1] in remaining}
     finally:
         bar.close()
-    models = merge_models(models, all_matches, options, timer)
-    if final_adjustment and options.triangulation.retriangulates:
+    # Retriangulation, where it follows, ends each model on an exact adjustment.
+    retriangulates = final_adjustment and options.triangulation.retriangulates
+    models = merge_models(models, all_matches, options, timer, exact=not retriangulates)
+    if retriangulates:
         for model in models:
             retriangulate(model, all_matches, options, timer)
     with timer("filtering"):
@@ -335,9 +337,10 @@ def reconstruct(db: DatabaseContents, options: MapperOptions,
 
 
 def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: MapperOptions,
-                 timer: StageTimer) -> list[Model]:
+                 timer: StageTimer, exact: bool = True) -> list[Model]:
     """Join models two at a time while a pair of them gives a similarity (merging.py),
-    the larger one as the target, and adjust each joined model; largest first."""
+    the larger one as the target, and adjust each joined model (refine_joined, `exact`
+    as it says); largest first."""
     # The larger model is the target, unless the other holds fixed poses (a continued model).
     models = sorted(models, key=lambda model: (not model.fixed_frame_ids, -model.num_registered))
     if len(models) < 2:
@@ -355,7 +358,7 @@ def merge_models(models: list[Model], matches: dict[Pair, np.ndarray], options: 
             return models
         with timer("merging"):
             joined = join(target, source, *found)
-        refine_joined(joined, matches, options, timer)
+        refine_joined(joined, matches, options, timer, exact)
         models = sorted([m for m in models if m is not target and m is not source] + [joined],
                         key=lambda model: (not model.fixed_frame_ids, -model.num_registered))
 

@@ -145,11 +145,13 @@ class ModelAdjuster:
 
 
 def refine_joined(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
-                  timer: StageTimer) -> None:
+                  timer: StageTimer, exact: bool = True) -> None:
     """Adjust a model joined from two (merging.py): global adjustment, then rounds
     of retriangulation and global adjustment. Retriangulation is guided matching of
     every image against its neighbours, which now include the images across the
-    junction; the better poses of each round let the next match more of them."""
+    junction; the better poses of each round let the next match more of them. `exact`:
+    the rounds' adjustments on the camera model's own errors (False where the finished
+    model's retriangulation follows, whose adjustment is exact)."""
     graphs = MatchGraphs.of(model, matches)
     adjuster = ModelAdjuster.of(model, options, timer)
     adjuster.global_adjustment()
@@ -157,7 +159,7 @@ def refine_joined(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
         with timer("triangulation"):
             triangulate_images(model, model.registered, graphs, options.guided_matching,
                                options.triangulation)
-        adjuster.global_adjustment(final=True)
+        adjuster.global_adjustment(final=True, exact=exact)
 
 
 def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: MapperOptions,
