@@ -157,14 +157,14 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
     for index, frame_id in enumerate(frame_order):
         free[index] = frame_id in requested_frames and \
             frame_id not in selection.constant_frame_ids
-    # The gauge from the frames the problem holds (a frame left without observations,
-    # as filtering can leave one at a model's end, stays as it is).
-    held, two_cams = _gauge(reconstruction, [i for i in ordered if model.frame_id(i) in position],
-                            selection.constant_frame_ids, ba)
+    # The gauge from the images the problem holds (a frame left without observations,
+    # as filtering can leave one at a model's end, has no row and stays as it is).
+    observed = [i for i in ordered if model.frame_id(i) in position]
+    held, two_cams = _gauge(reconstruction, observed, selection.constant_frame_ids, ba)
     for frame_id in held:
         free[position[frame_id]] = False
     if two_cams:
-        _hold_scale(model, selection.image_ids, position, free, rigs_from_world)
+        _hold_scale(model, observed, position, free, rigs_from_world)
     # A point with observations outside the problem stays constant.
     track_lengths = np.bincount(model.point_of_flat[model.point_of_flat >= 0],
                                 minlength=len(model.xyz))
@@ -198,10 +198,8 @@ def _hold_scale(model: Model, image_ids: Iterable[int], position: dict[int, int]
     """COLMAP's TWO_CAMS_FROM_WORLD gauge on `free` (a row per frame, at `position`):
     the first image's frame (by image id; a constant frame if there is one) constant,
     and of the next frame's translation the coordinate along which it lies farthest from
-    the first, in the first frame's axes. Frames without observations in the problem
-    have no row, and stay as they are."""
-    frame_ids = [model.frame_id(i) for i in sorted(image_ids)]
-    frames = list(dict.fromkeys(position[f] for f in frame_ids if f in position))
+    the first, in the first frame's axes."""
+    frames = list(dict.fromkeys(position[model.frame_id(i)] for i in sorted(image_ids)))
     if not frames:
         return
     held = [i for i in frames if not free[i].any()]

@@ -46,9 +46,9 @@ def filter_points(model: Model, image_ids: list[int], filtering: FilteringOption
     candidates = [p for p in touched if model.has_point(p)]
     lengths, images = model.track_images(candidates)
     wide = has_triangulation_angle(model, candidates, lengths, images, filtering.min_tri_angle_deg)
-    unsupported = ~_supported(model, np.array(candidates, np.int64), lengths, wide, filtering,
-                              final)
-    for point_id in np.array(candidates, np.int64)[unsupported].tolist():
+    point_ids = np.array(candidates, np.int64)
+    unsupported = ~_supported(model, point_ids, lengths, wide, filtering, final)
+    for point_id in point_ids[unsupported].tolist():
         model.delete_point(point_id)
     return removed_observations, int(np.count_nonzero(unsupported))
 
