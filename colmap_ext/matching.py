@@ -431,25 +431,21 @@ def exact_matches(descriptors1: np.ndarray, descriptors2: np.ndarray, max_ratio:
     a, b = descriptors1.astype(np.float32), descriptors2.astype(np.float32).T.copy()
     forward = np.zeros(len(a), np.int64)
     forward_ok = np.zeros(len(a), bool)
-    backward = np.zeros(len(b.T), np.int64)
-    backward_first = np.full(len(b.T), -np.inf, np.float32)
-    backward_second = np.full(len(b.T), -np.inf, np.float32)
+    # Each column's two largest over the blocks so far: the backward search.
+    backward = np.zeros((len(b.T), 2), np.int64)
+    backward_largest = np.full((len(b.T), 2), -np.inf, np.float32)
     block = max(2, EXACT_BLOCK_PRODUCTS // len(b.T))
     for start in range(0, len(a), block):
         dot = a[start:start + block] @ b
-        index, largest, _, _ = solvers.largest_per_row(dot.T, 2)  # the columns' two largest
-        best, first, second = index[:, 0], largest[:, 0], largest[:, 1]
-        backward_second = np.maximum(np.maximum(backward_second, second),
-                                     np.minimum(backward_first, first))
-        backward = np.where(first > backward_first, best + start, backward)
-        backward_first = np.maximum(backward_first, first)
+        solvers.largest_per_column(dot, 2, start, backward, backward_largest)
         index, largest, _, _ = solvers.largest_per_row(dot, 2)
         forward[start:start + len(dot)] = index[:, 0]
         forward_ok[start:start + len(dot)] = _passes_ratio_test(largest[:, 0], largest[:, 1],
                                                                 max_ratio, max_distance)
-    backward_ok = _passes_ratio_test(backward_first, backward_second, max_ratio, max_distance)
+    backward_ok = _passes_ratio_test(backward_largest[:, 0], backward_largest[:, 1], max_ratio,
+                                     max_distance)
     matched = np.flatnonzero(forward_ok)
-    matched = matched[backward_ok[forward[matched]] & (backward[forward[matched]] == matched)]
+    matched = matched[backward_ok[forward[matched]] & (backward[forward[matched], 0] == matched)]
     if len(matched) < MIN_NUM_INLIERS:
         return none
     return np.stack([matched, forward[matched]], axis=1).astype(np.uint32)

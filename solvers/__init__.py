@@ -1,7 +1,7 @@
 """Calibrated minimal solvers and RANSAC (OpenGV, in C++) in COLMAP's conventions, for
 single cameras and camera rigs (generalized solvers), the mapper's bundle adjuster for
-calibrated cameras (`bundle_adjust`), and its one compiled search kernel
-(`largest_per_row`).
+calibrated cameras (`bundle_adjust`), and its compiled search kernels
+(`largest_per_row`, `largest_per_column`).
 
 Conventions, once:
 - Inputs are undistorted bearing vectors in any direction (behind the image plane too):
@@ -30,6 +30,7 @@ from solvers.api import (
     five_point,
     generalized_absolute_pose,
     generalized_relative_pose,
+    largest_per_column,
     largest_per_row,
     p3p,
     relative_pose,
@@ -49,6 +50,7 @@ __all__ = [
     "five_point",
     "generalized_absolute_pose",
     "generalized_relative_pose",
+    "largest_per_column",
     "largest_per_row",
     "p3p",
     "relative_pose",

@@ -280,6 +280,24 @@ def largest_per_row(values: np.ndarray, k: int, *, subset: np.ndarray | None = N
     return _opengv.largest_per_row(values, int(k), columns, int(k_subset))
 
 
+def largest_per_column(values: np.ndarray, k: int, first_row: int, index: np.ndarray,
+                       best: np.ndarray) -> None:
+    """Merges the k largest values of each column of `values` (n, m), whose rows are rows
+    `first_row`.. of a matrix taken block by block, into `index` (m, k) int64 and `best`
+    (m, k) float32, largest first, in place: those of the blocks before, -inf at row 0
+    where none yet. The earlier row wins ties, so the result is largest_per_row's on the
+    whole matrix transposed, without transposing it."""
+    values = np.ascontiguousarray(values, dtype=np.float32)
+    if values.ndim != 2:
+        raise ValueError(f"values must be 2-D, got shape {values.shape}")
+    for name, array, dtype in (("index", index, np.int64), ("best", best, np.float32)):
+        if array.dtype != dtype or not array.flags.c_contiguous or \
+                array.shape != (values.shape[1], k):
+            raise ValueError(f"{name} must be a C-contiguous ({values.shape[1]}, {k}) "
+                             f"{np.dtype(dtype).name} array")
+    _opengv.largest_per_column(values, int(k), int(first_row), index, best)
+
+
 @dataclass
 class BundleAdjustmentResult:
     """The adjusted rig_from_world of every frame and position of every point, and Ceres's

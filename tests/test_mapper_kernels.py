@@ -85,6 +85,20 @@ def test_largest_per_row_ranks_as_a_stable_sort(num_columns: int) -> None:
     assert (sub_index == 0).all() and np.isneginf(sub_best).all() and sub_best.shape == (40, 2)
 
 
+@pytest.mark.parametrize("k", [1, 3, 60])
+def test_largest_per_column_over_blocks_is_largest_per_row_of_the_transpose(k: int) -> None:
+    """Ties (the earlier row first) and columns shorter than k included."""
+    rng = np.random.default_rng(k)
+    values = rng.integers(0, 6, (45, 13)).astype(np.float32)
+    index, best = np.zeros((13, k), np.int64), np.full((13, k), -np.inf, np.float32)
+    for start in range(0, 45, 7):
+        solvers.largest_per_column(values[start:start + 7], k, start, index, best)
+    expected_index, expected_best, _, _ = solvers.largest_per_row(values.T, k)
+    assert (index == expected_index).all() and (best == expected_best).all()
+    with pytest.raises(ValueError, match="index must be"):
+        solvers.largest_per_column(values, k, 0, index.astype(np.int32), best)
+
+
 @pytest.mark.parametrize("dtype", [np.float64, np.float32])
 def test_cross_norms_are_numpys_to_the_last_bit(dtype) -> None:
     """Reprojection errors decide on thresholds: the quicker cross product must not move them."""
@@ -105,11 +119,12 @@ def test_pair_store_gives_the_exact_nearest_over_all_and_over_subsets(small_bloc
         true_index, true_angles = brute_force_nearest(features[1], features[other_id][subset], 2)
         assert (index == true_index).all()
         np.testing.assert_allclose(angles, true_angles, atol=1e-5)
-        # The search over all of the other image's keypoints was kept on the way.
-        index, angles = store(1, other_id)
-        true_index, true_angles = brute_force_nearest(features[1], features[other_id], 3)
-        assert (index == true_index).all()
-        np.testing.assert_allclose(angles, true_angles, atol=1e-5)
+        # The searches over all keypoints were kept on the way, both ways.
+        for pair in ((1, other_id), (other_id, 1)):
+            index, angles = store(*pair)
+            true_index, true_angles = brute_force_nearest(features[pair[0]], features[pair[1]], 3)
+            assert (index == true_index).all()
+            np.testing.assert_allclose(angles, true_angles, atol=1e-5)
 
 
 def test_a_few_keypoints_are_searched_alone_and_many_as_the_whole_pair() -> None:
@@ -138,16 +153,16 @@ def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
     one_pair = 100 * 3 * (4 + 4)  # int32 indices and float32 angles
     store = NearestDescriptors(features, sizes(features), k=3, max_bytes=2 * one_pair,
                                num_threads=2)
-    store.prefetch(0, [1, 2, 3])
-    assert list(store.pairs.items) == [(0, 2), (0, 3)]
+    store.prefetch(0, [1, 2, 3])  # each search keeps its pair both ways
+    assert list(store.pairs.items) == [(0, 3), (3, 0)]
     assert store.pairs.bytes == 2 * one_pair
     store(0, 1)  # searched again, then kept as the newest
-    assert list(store.pairs.items) == [(0, 3), (0, 1)]
+    assert list(store.pairs.items) == [(1, 0), (0, 1)]
     # Unit descriptors (100 x 128 float32 an image) beyond the memory: the newest alone.
     assert list(store.units.items) == [1] and store.units.bytes == 100 * 128 * 4
     store.close()  # its threads stop; a later search starts them again
-    store.prefetch(1, [0, 2])
-    assert list(store.pairs.items) == [(1, 0), (1, 2)]
+    store.prefetch(1, [0, 2])  # (1, 0) is kept: (1, 2) alone is searched
+    assert list(store.pairs.items) == [(1, 2), (2, 1)] and list(store.units.items) == [2]
     store.close()
 
 

@@ -59,17 +59,35 @@ def nearest_unit_descriptors(unit_queries: np.ndarray, unit_database: np.ndarray
                              subset: np.ndarray | None = None, k_subset: int = 0,
                              ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """nearest_descriptors from the descriptors' unit_descriptors."""
+    index, angles, found, _ = search_both_ways(unit_queries, unit_database, k, subset, k_subset,
+                                               reverse=False)
+    return index, angles, found
+
+
+def search_both_ways(unit_queries: np.ndarray, unit_database: np.ndarray, k: int,
+                     subset: np.ndarray | None, k_subset: int, reverse: bool
+                     ) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray],
+                                tuple[np.ndarray, np.ndarray] | None]:
+    """nearest_unit_descriptors, and with `reverse` from the same cosines the search the
+    other way (the k nearest queries of each database descriptor: index, angles), which
+    is that search's exact answer: a cosine is the same dot product either way."""
+    k_reverse = min(k, len(unit_queries)) if reverse else 0
     k = min(k, len(unit_database))
     k_subset = min(k_subset, 0 if subset is None else len(subset))
     index = np.empty((len(unit_queries), k), np.int32)
     best = np.empty((len(unit_queries), k), np.float32)
     sub_index = np.empty((len(unit_queries), k_subset), np.int64)
     sub_best = np.empty((len(unit_queries), k_subset), np.float32)
+    reverse_index = np.zeros((len(unit_database), k_reverse), np.int64)
+    reverse_best = np.full((len(unit_database), k_reverse), -np.inf, np.float32)
     for start, similarity in _similarity_blocks(unit_queries, unit_database):
         rows = slice(start, start + len(similarity))
         index[rows], best[rows], sub_index[rows], sub_best[rows] = solvers.largest_per_row(
             similarity, k, subset=subset, k_subset=k_subset)
-    return index, _angles(best), (sub_index, _angles(sub_best))
+        if reverse:
+            solvers.largest_per_column(similarity, k_reverse, start, reverse_index, reverse_best)
+    found = (reverse_index.astype(np.int32), _angles(reverse_best)) if reverse else None
+    return index, _angles(best), (sub_index, _angles(sub_best)), found
 
 
 class LeastRecentlyUsed:
@@ -90,6 +108,8 @@ class LeastRecentlyUsed:
         return self.items[key]
 
     def keep(self, key: Hashable, arrays: tuple[np.ndarray, ...]) -> None:
+        if key in self.items:
+            self.bytes -= sum(array.nbytes for array in self.items.pop(key))
         self.items[key] = arrays
         self.bytes += sum(array.nbytes for array in arrays)
         while self.bytes > self.max_bytes and len(self.items) > 1:
@@ -101,7 +121,9 @@ class NearestDescriptors:
     """For every keypoint of an image, its k nearest descriptors in another image: the
     guided matching's candidates (paper, step 4c). Descriptors never change, so each
     ordered pair of images is searched once and kept, the least recently used pairs
-    given up first beyond `max_bytes`; so are the images' unit descriptors, which the
+    given up first beyond `max_bytes`, and the search of (image, other) also gives
+    (other, image) where that is not kept yet: the same cosines, read down the columns
+    (search_both_ways). So are the images' unit descriptors kept, which the
     searches of an image's pairs share (another `max_bytes` at most). A registration's
     search against a neighbour's observed keypoints comes from the same cosines
     (`search_subsets`). Every search runs with single-threaded BLAS, searches against
@@ -169,8 +191,9 @@ class NearestDescriptors:
         (indices into them, angles), keeping each search over all of them."""
         def search(other_id: int, subset: np.ndarray):
             if self._uses_matches(image_id, other_id):
-                return self._matched(image_id, other_id, subset, k)
-            return nearest_unit_descriptors(units[image_id], units[other_id], self.k, subset, k)
+                return *self._matched(image_id, other_id, subset, k), None
+            return search_both_ways(units[image_id], units[other_id], self.k, subset, k,
+                                    reverse=(other_id, image_id) not in self.pairs)
 
         if not subsets:
             return []
@@ -185,10 +208,12 @@ class NearestDescriptors:
                 results = list(self._pool.map(search, *zip(*subsets)))
             else:
                 results = [search(other_id, subset) for other_id, subset in subsets]
-        for (other_id, _), (index, angles, _) in zip(subsets, results):
+        for (other_id, _), (index, angles, _, reverse) in zip(subsets, results):
             if not self._uses_matches(image_id, other_id):
                 self.pairs.keep((image_id, other_id), (index, angles))
-        return [found for _, _, found in results]
+            if reverse is not None:
+                self.pairs.keep((other_id, image_id), reverse)
+        return [found for _, _, found, _ in results]
 
     def pair_angles(self, image_id: int, kps: np.ndarray, other_id: int,
                     other_kps: np.ndarray) -> np.ndarray:

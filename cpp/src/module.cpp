@@ -340,12 +340,28 @@ py::tuple largest_per_row_py(const FloatMatrix& values, int k, const Int64Vector
   return py::make_tuple(index, best, sub_index, sub_best);
 }
 
+void largest_per_column_py(const FloatMatrix& values, int k, int64_t first_row,
+                           py::array_t<int64_t, py::array::c_style> index,
+                           py::array_t<float, py::array::c_style> best) {
+  if (values.ndim() != 2) throw std::invalid_argument("values must be a 2-D array");
+  const py::ssize_t rows = values.shape(0), cols = values.shape(1);
+  if (k < 0) throw std::invalid_argument("k must be >= 0");
+  for (const py::array* state : {static_cast<py::array*>(&index), static_cast<py::array*>(&best)})
+    if (state->ndim() != 2 || state->shape(0) != cols || state->shape(1) != k)
+      throw std::invalid_argument("index and best must be (columns, k) arrays");
+  const float* data = values.data();
+  int64_t* index_inout = index.mutable_data();
+  float* best_inout = best.mutable_data();
+  py::gil_scoped_release release;
+  largest_per_column(data, rows, cols, k, first_row, index_inout, best_inout);
+}
+
 }  // namespace
 
 PYBIND11_MODULE(_opengv, m) {
   m.doc() =
       "OpenGV minimal solvers and RANSAC in COLMAP's conventions (see geometry.hpp), and the "
-      "mapper's bundle adjuster (bundle_adjustment.hpp) and largest-per-row kernel (largest.hpp).";
+      "mapper's bundle adjuster (bundle_adjustment.hpp) and its search kernels (largest.hpp).";
   m.def("relative_pose", &relative_pose, py::arg("rays1"), py::arg("rays2"), py::arg("method"),
         py::arg("max_errors"), py::arg("max_iterations"), py::arg("min_iterations"),
         py::arg("confidence"), py::arg("seed"));
@@ -375,4 +391,6 @@ PYBIND11_MODULE(_opengv, m) {
         py::arg("max_step_scale"), py::arg("num_threads"));
   m.def("largest_per_row", &largest_per_row_py, py::arg("values"), py::arg("k"),
         py::arg("subset"), py::arg("k_subset"));
+  m.def("largest_per_column", &largest_per_column_py, py::arg("values"), py::arg("k"),
+        py::arg("first_row"), py::arg("index").noconvert(), py::arg("best").noconvert());
 }
