@@ -21,7 +21,8 @@ from colmap_ext.mapper.guided_matching import epipolar_inliers, pair_pixel_angle
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (InitializationOptions, TriangulationOptions,
                                        TwoViewOptions)
-from colmap_ext.mapper.triangulation import shared_observation_groups, triangulate_points
+from colmap_ext.mapper.triangulation import (Tracks, shared_observation_groups,
+                                              triangulate_points)
 from colmap_ext.mapper.two_view import Pair, relative_pose
 
 # Pairs evaluated when the mapper chooses: the ones with most verified matches; and
@@ -88,7 +89,7 @@ def reconstruct_frame(model: Model, image_id: int, matches: dict[Pair, np.ndarra
     tracks = _frame_tracks(model, cams_from_rig, matches, two_view)
     if not tracks:
         return FrameReconstruction(image_id, [], np.zeros((0, 3)))
-    xyz, ok = triangulate_points(model, tracks, triangulation, cams_from_rig)
+    xyz, ok = triangulate_points(model, Tracks.of(tracks), triangulation, cams_from_rig)
     return FrameReconstruction(image_id, [track for track, keep in zip(tracks, ok) if keep],
                                xyz[ok])
 

@@ -105,6 +105,8 @@ class Model:
         sizes = [len(db.images[image_id].keypoints) for image_id in self.image_ids]
         starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
         self.flat_offset = dict(zip(self.image_ids, starts[:-1].tolist()))
+        self._flat_offsets = np.zeros(max(self.image_ids, default=0) + 1, np.int64)
+        self._flat_offsets[self.image_ids] = starts[:-1]
         self.point_of_flat = np.full(int(starts[-1]), -1, dtype=np.int64)
         self.image_of_flat = np.repeat(np.array(self.image_ids, np.int32), sizes)
         self.rays_flat = np.zeros((int(starts[-1]), 3))  # rays[image_id] are views of it
@@ -338,6 +340,10 @@ class Model:
         last call: what the mapper's cached counts per image must look at again."""
         changed, self._changed = self._changed, set()
         return changed
+
+    def flat_index(self, image_ids: np.ndarray, kps: np.ndarray) -> np.ndarray:
+        """Indices into point_of_flat / rays_flat of keypoints `kps` of `image_ids` (pairwise)."""
+        return self._flat_offsets[image_ids] + kps
 
     def observations(self, image_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Keypoint indices of an image that observe points, and those point ids."""

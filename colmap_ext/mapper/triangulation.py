@@ -24,33 +24,50 @@ def triangulate_image(model: Model, image_id: int, neighbours: list[int],
     search where they match most free keypoints (verified_partners). Returns
     (observations added to existing points, new points)."""
     free = np.flatnonzero(model.point_of[image_id] < 0)
-    candidates: dict[int, list[tuple[int, int]]] = {}  # kp -> [(other image, other kp)]
     verified = verified or {}
     partners = {other_id: verified_partners(model, image_id, free, verified[other_id], guided)
                 for other_id in neighbours if other_id in verified}
     model.nearest.prefetch(image_id, [other_id for other_id in neighbours
                                       if partners.get(other_id) is None], free)
-    for other_id in neighbours:
-        kps, other_kps, _ = compatible_features(model, image_id, other_id, free, guided,
-                                                partners.get(other_id))
-        for kp, other_kp in zip(kps.tolist(), other_kps.tolist()):
-            candidates.setdefault(kp, []).append((other_id, other_kp))
+    found = [(other_id, *compatible_features(model, image_id, other_id, free, guided,
+                                             partners.get(other_id))[:2])
+             for other_id in neighbours]
+    candidates = Candidates.of(found)
     num_extended = _extend_tracks(model, image_id, candidates, triangulation)
     num_new = _create_points(model, image_id, candidates, triangulation, min_views)
     return num_extended, num_new
 
 
-def _extend_tracks(model: Model, image_id: int, candidates: dict[int, list[tuple[int, int]]],
+@dataclass
+class Candidates:
+    """A new image's compatible features in its neighbours, keypoint by keypoint (in the
+    order the keypoints first come, neighbour after neighbour), each keypoint's in its
+    neighbours' order: the keypoint, the other image and its keypoint."""
+
+    kp: np.ndarray
+    other_image: np.ndarray
+    other_kp: np.ndarray
+
+    @classmethod
+    def of(cls, found: list[tuple[int, np.ndarray, np.ndarray]]) -> Candidates:
+        """From (neighbour, keypoints, its compatible keypoints) in the neighbours' order."""
+        if not found:
+            return cls(*(np.zeros(0, np.int64) for _ in range(3)))
+        kp = np.concatenate([kps for _, kps, _ in found]).astype(np.int64)
+        other_image = np.concatenate([np.full(len(kps), other_id, np.int64)
+                                      for other_id, kps, _ in found])
+        other_kp = np.concatenate([other_kps for _, _, other_kps in found]).astype(np.int64)
+        _, first, inverse = np.unique(kp, return_index=True, return_inverse=True)
+        order = np.argsort(first[inverse], kind="stable")
+        return cls(kp[order], other_image[order], other_kp[order])
+
+
+def _extend_tracks(model: Model, image_id: int, candidates: Candidates,
                    triangulation: TriangulationOptions) -> int:
     """Keypoints compatible with an observation of an existing point join its track
     when the point reprojects onto them (one keypoint per point, the closest)."""
-    # Every (keypoint, other image's keypoint) pair in the candidates' order, looked up
-    # at once as flat indices into model.point_of_flat.
-    kps = np.array([kp for kp, matches in candidates.items() for _ in matches], np.int64)
-    flat = np.array([model.flat_offset[other_id] + other_kp
-                     for matches in candidates.values() for other_id, other_kp in matches],
-                    np.int64)
-    return model.add_observations_within(image_id, kps, model.point_of_flat[flat],
+    other = model.flat_index(candidates.other_image, candidates.other_kp)
+    return model.add_observations_within(image_id, candidates.kp, model.point_of_flat[other],
                                          triangulation.max_reproj_error_px)
 
 
@@ -173,7 +190,7 @@ def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
             tracks.append({**track, **other_track})
     if not tracks:
         return 0
-    xyz, ok = triangulate_points(model, tracks, triangulation)
+    xyz, ok = triangulate_points(model, Tracks.of(tracks), triangulation)
     merged: set[int] = set()
     for (first, second), track, point, keep in zip(pairs, tracks, xyz, ok):
         if keep and first not in merged and second not in merged:
@@ -184,33 +201,70 @@ def merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
     return len(merged) // 2
 
 
-def _create_points(model: Model, image_id: int, candidates: dict[int, list[tuple[int, int]]],
+def _create_points(model: Model, image_id: int, candidates: Candidates,
                    triangulation: TriangulationOptions, min_views: int) -> int:
     """Free keypoints with free compatible features in enough images become points,
-    kept when every observation reprojects within the threshold."""
-    tracks = []
-    for kp, matches in candidates.items():
-        if model.point_of[image_id][kp] >= 0:
-            continue
-        track = {image_id: kp}
-        for other_id, other_kp in matches:
-            if model.point_of[other_id][other_kp] < 0:
-                track[other_id] = other_kp
-        if len(track) >= min_views:
-            tracks.append(track)
-    if not tracks:
+    kept when every observation reprojects within the threshold (in the candidates'
+    order, a keypoint taken by an earlier new point is not taken again)."""
+    free = (model.point_of[image_id][candidates.kp] < 0) & \
+        (model.point_of_flat[model.flat_index(candidates.other_image, candidates.other_kp)] < 0)
+    kp, other_image, other_kp = (candidates.kp[free], candidates.other_image[free],
+                                 candidates.other_kp[free])
+    # Each keypoint's features are contiguous, the keypoints in the candidates' order.
+    heads, start, count = np.unique(kp, return_index=True, return_counts=True)
+    order = np.argsort(start)
+    heads, count = heads[order], count[order]
+    enough = count + 1 >= min_views
+    if not enough.any():
         return 0
+    # Each track: the image's keypoint, then its compatible features.
+    entries = np.repeat(enough, count)
+    entry_track = np.repeat(np.cumsum(enough) - 1, count)[entries]
+    heads = heads[enough]
+    track = np.concatenate([np.arange(len(heads)), entry_track])
+    order = np.argsort(track, kind="stable")
+    tracks = Tracks(track[order],
+                    np.concatenate([np.full(len(heads), image_id), other_image[entries]])[order],
+                    np.concatenate([heads, other_kp[entries]])[order], len(heads))
     xyz, ok = triangulate_points(model, tracks, triangulation)
+    flat = model.flat_index(tracks.image, tracks.kp)
+    # Only a keypoint in several tracks can be taken by an earlier one.
+    _, inverse, uses = np.unique(flat, return_inverse=True, return_counts=True)
+    shared = np.zeros(tracks.num_tracks, bool)
+    shared[tracks.track[uses[inverse] > 1]] = True
+    bounds = np.searchsorted(tracks.track, np.arange(tracks.num_tracks + 1)).tolist()
     created = 0
-    for track, point, keep in zip(tracks, xyz, ok):
-        if keep and all(model.point_of[i][kp] < 0 for i, kp in track.items()):
-            model.add_point(point, track)
-            created += 1
+    for t in np.flatnonzero(ok).tolist():
+        begin, end = bounds[t], bounds[t + 1]
+        if shared[t] and (model.point_of_flat[flat[begin:end]] >= 0).any():
+            continue
+        model.add_point(xyz[t], dict(zip(tracks.image[begin:end].tolist(),
+                                         tracks.kp[begin:end].tolist())))
+        created += 1
     return created
 
 
-def triangulate_points(model: Model, tracks: list[dict[int, int]],
-                       triangulation: TriangulationOptions,
+@dataclass
+class Tracks:
+    """Many tracks at once, observation by observation, each track's together and in its
+    order: the track it belongs to (0 .. num_tracks - 1, ascending), its image and keypoint."""
+
+    track: np.ndarray
+    image: np.ndarray
+    kp: np.ndarray
+    num_tracks: int
+
+    @classmethod
+    def of(cls, tracks: list[dict[int, int]]) -> Tracks:
+        """From tracks as image id -> keypoint."""
+        lengths = [len(track) for track in tracks]
+        return cls(np.repeat(np.arange(len(tracks)), lengths),
+                   np.array([i for track in tracks for i in track], np.int64),
+                   np.array([kp for track in tracks for kp in track.values()], np.int64),
+                   len(tracks))
+
+
+def triangulate_points(model: Model, tracks: Tracks, triangulation: TriangulationOptions,
                        cams_from_world: dict[int, pycolmap.Rigid3d] | None = None
                        ) -> tuple[np.ndarray, np.ndarray]:
     """The points of tracks (triangulate_tracks), and whether each is kept: some two of
@@ -223,43 +277,32 @@ def triangulate_points(model: Model, tracks: list[dict[int, int]],
                                          cams_from_world)
 
 
-def triangulate_tracks(model: Model, tracks: list[dict[int, int]], min_angle_deg: float,
+def triangulate_tracks(model: Model, tracks: Tracks, min_angle_deg: float,
                        cams_from_world: dict[int, pycolmap.Rigid3d] | None = None
                        ) -> tuple[np.ndarray, np.ndarray]:
     """Linear multi-view triangulation of tracks over registered images (or over the
     poses `cams_from_world`); valid where some two rays meet at `min_angle_deg` or more."""
-    image_ids = sorted({i for track in tracks for i in track})
-    view_of = {image_id: v for v, image_id in enumerate(image_ids)}
-    views, points, rays = [], [], []
-    for p, track in enumerate(tracks):
-        for image_id, kp in track.items():
-            views.append(view_of[image_id])
-            points.append(p)
-            rays.append(model.rays[image_id][kp])
-    poses = [model.pose(i) if cams_from_world is None else cams_from_world[i] for i in image_ids]
-    return solvers.triangulate_tracks(poses, np.array(views),
-                                      np.array(points), np.array(rays), num_points=len(tracks),
-                                      min_angle_deg=min_angle_deg)
+    image_ids, views = np.unique(tracks.image, return_inverse=True)
+    poses = [model.pose(i) if cams_from_world is None else cams_from_world[i]
+             for i in image_ids.tolist()]
+    return solvers.triangulate_tracks(poses, views, tracks.track,
+                                      model.rays_flat[model.flat_index(tracks.image, tracks.kp)],
+                                      num_points=tracks.num_tracks, min_angle_deg=min_angle_deg)
 
 
-def _reprojection_ok(model: Model, tracks: list[dict[int, int]], xyz: np.ndarray,
-                     max_error_px: float,
+def _reprojection_ok(model: Model, tracks: Tracks, xyz: np.ndarray, max_error_px: float,
                      cams_from_world: dict[int, pycolmap.Rigid3d] | None) -> np.ndarray:
     """Whether every observation of each track reprojects within `max_error_px` (poses:
     `cams_from_world`, or the registered ones)."""
     ok = np.isfinite(xyz).all(axis=1)
-    by_image: dict[int, tuple[list[int], list[int]]] = {}
-    for p, track in enumerate(tracks):
-        for image_id, kp in track.items():
-            by_image.setdefault(image_id, ([], []))
-            by_image[image_id][0].append(p)
-            by_image[image_id][1].append(kp)
-    for image_id, (ps, kps) in by_image.items():
-        ps = np.array(ps)
+    by_image = np.argsort(tracks.image, kind="stable")
+    image_ids, starts = np.unique(tracks.image[by_image], return_index=True)
+    for image_id, observations in zip(image_ids.tolist(), np.split(by_image, starts[1:])):
+        ps = tracks.track[observations]
         pose = None if cams_from_world is None else cams_from_world[image_id]
-        errors = model.reprojection_errors(image_id, np.array(kps), np.nan_to_num(xyz[ps]), pose)
-        bad = ps[errors > max_error_px]
-        ok[bad] = False
+        errors = model.reprojection_errors(image_id, tracks.kp[observations],
+                                           np.nan_to_num(xyz[ps]), pose)
+        ok[ps[errors > max_error_px]] = False
     return ok
 
 
