@@ -132,6 +132,59 @@ def test_bundle_adjust_on_threads_takes_the_steps_of_one_thread(tmp_path, num_th
         assert _rotation_deg(a, b) < 1e-5  # arccos resolves no finer
 
 
+def _exact_problem(rng: np.random.Generator, num_frames: int, tracks: list[np.ndarray]):
+    """Frames on a circle looking at its centre, points near the centre, each track the
+    frames seeing one point, every observation exact (a PINHOLE camera): (true frames,
+    true points, and the bundle_adjust arguments from perturbed frames and points, the
+    first frame and the second's largest translation held, as _ours does)."""
+    camera = pycolmap.Camera(model="PINHOLE", width=1000, height=1000,
+                             params=[800, 800, 500, 500])
+    frames = []
+    for angle in np.linspace(0, 2 * np.pi, num_frames, endpoint=False):
+        centre = np.array([10 * np.cos(angle), 10 * np.sin(angle), 0.0])
+        z = -centre / np.linalg.norm(centre)
+        x = np.cross([0.0, 0.0, 1.0], z)
+        rotation = np.stack([x, np.cross(z, x), z])
+        frames.append(pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), -rotation @ centre))
+    points = rng.uniform(-2, 2, size=(len(tracks), 3))
+    observation_point = np.concatenate([np.full(len(t), p) for p, t in enumerate(tracks)])
+    observation_image = np.concatenate(tracks)
+    directions = np.array([frames[f] * points[p] for f, p in zip(observation_image,
+                                                                 observation_point)])
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    start = [pycolmap.Rigid3d(pycolmap.Rotation3d(rng.normal(scale=0.003, size=3)) * f.rotation,
+                              f.translation + rng.normal(scale=0.01, size=3)) for f in frames]
+    free = np.ones((num_frames, 6), bool)
+    start[0] = frames[0]
+    free[0] = False
+    start[1] = pycolmap.Rigid3d(start[1].rotation, np.where(
+        np.arange(3) == np.argmax(np.abs(frames[1].translation)), frames[1].translation,
+        start[1].translation))
+    free[1, 3 + int(np.argmax(np.abs(frames[1].translation)))] = False
+    arguments = (start, free, [pycolmap.Rigid3d()] * num_frames, list(range(num_frames)),
+                 points + rng.normal(scale=0.01, size=points.shape), np.ones(len(tracks), bool),
+                 observation_image, observation_point, directions,
+                 pixels_from_tangent(camera, directions))
+    return frames, points, arguments
+
+
+@pytest.mark.parametrize("long_tracks", [False, True])
+def test_bundle_adjust_above_200_frames_reaches_the_truth(long_tracks: bool) -> None:
+    """Beyond 200 free frames the reduced camera system is sparse where few frame pairs
+    share points (short tracks around a ring) and dense where most do (every point seen
+    by every frame, as on a turntable); both solve exact observations to the truth."""
+    rng = np.random.default_rng(5)
+    num_frames = 210
+    tracks = [np.arange(num_frames)] * 40 if long_tracks else \
+        [(start + np.arange(4)) % num_frames for start in range(num_frames) for _ in range(5)]
+    frames, points, arguments = _exact_problem(rng, num_frames, tracks)
+    result = solvers.bundle_adjust(*arguments, max_iterations=100, gradient_tolerance=1e-10,
+                                   num_threads=2)
+    assert result.initial_cost > 1e3 and result.final_cost < 1e-12
+    assert max(_rotation_deg(a, b) for a, b in zip(result.rigs_from_world, frames)) < 1e-4
+    np.testing.assert_allclose(result.points3D, points, atol=1e-6)
+
+
 def test_pixels_from_tangent_give_reprojection_errors_to_first_order():
     """A point 1-3 px off its keypoint's ray, on every kind of camera model: the matrix
     times the point's offset on the tangent plane is its pixel error within 3 % (a

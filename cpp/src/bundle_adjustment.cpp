@@ -7,7 +7,6 @@
 #include <cmath>
 #include <limits>
 #include <thread>
-#include <unordered_map>
 
 namespace colmap_ext {
 namespace {
@@ -18,8 +17,13 @@ using Matrix26d = Eigen::Matrix<double, 2, 6>;
 using Matrix23d = Eigen::Matrix<double, 2, 3>;
 using Vector6d = Eigen::Matrix<double, 6, 1>;
 
-// Above this many free frames the reduced camera system is solved sparse.
+// The reduced camera system is dense up to this many free frames ...
 constexpr int kMaxDenseFrames = 200;
+// ... and beyond, up to this many (6n x 6n doubles a thread: 72 MB at 500), where at least
+// this share of the frame pairs share a point (long tracks, as a turntable's): a sparse
+// factorisation of a nearly full matrix takes longer than a dense one. Sparse elsewhere.
+constexpr int kMaxFilledDenseFrames = 500;
+constexpr double kMinDenseFill = 0.25;
 // Ceres's Levenberg-Marquardt defaults (TrustRegionMinimizer, LevenbergMarquardtStrategy).
 constexpr double kInitialRadius = 1e4;
 constexpr double kMaxRadius = 1e16;
@@ -100,6 +104,13 @@ class Adjuster {
       if (point_variable[p]) point_observations_[counts[p]++] = static_cast<int>(o);
     }
     linearised_.resize(observations.size());
+    if (num_blocks_ > kMaxDenseFrames) {
+      pattern_ = BlockPattern(*this);
+      const double pairs = 0.5 * num_blocks_ * (num_blocks_ + 1.0);
+      dense_ = num_blocks_ <= kMaxFilledDenseFrames &&
+               static_cast<double>(pattern_.columns.size()) >= kMinDenseFill * pairs;
+      if (dense_) pattern_ = BlockPattern();
+    }
   }
 
   BundleSummary solve() {
@@ -292,37 +303,79 @@ class Adjuster {
     return norm;
   }
 
-  // The reduced camera system S x = rhs (its upper block triangle), one per thread.
+  // The frame pairs (a <= b) that share a variable point: the reduced camera system's
+  // upper block triangle, row by row (each row's columns ascending). Fixed for a problem,
+  // so found once; a block's place in it is then a search in its row, not a hash lookup.
+  struct BlockPattern {
+    BlockPattern() = default;
+    explicit BlockPattern(const Adjuster& adjuster) {
+      const int n = adjuster.num_blocks_;
+      std::vector<std::vector<int>> block_points(n);  // the variable points of each block
+      for (size_t p = 0; p + 1 < adjuster.point_start_.size(); ++p)
+        for (int k = adjuster.point_start_[p]; k < adjuster.point_start_[p + 1]; ++k) {
+          const int block = adjuster.block_of(adjuster.point_observations_[k]);
+          if (block >= 0) block_points[block].push_back(static_cast<int>(p));
+        }
+      std::vector<int> seen(n, -1);  // the row that last took each column
+      row_start.assign(1, 0);
+      for (int a = 0; a < n; ++a) {
+        const size_t first = columns.size();
+        seen[a] = a;
+        columns.push_back(a);
+        for (int p : block_points[a])
+          for (int k = adjuster.point_start_[p]; k < adjuster.point_start_[p + 1]; ++k) {
+            const int b = adjuster.block_of(adjuster.point_observations_[k]);
+            if (b > a && seen[b] != a) {
+              seen[b] = a;
+              columns.push_back(b);
+            }
+          }
+        std::sort(columns.begin() + first, columns.end());
+        row_start.push_back(static_cast<int>(columns.size()));
+      }
+    }
+    int place(int a, int b) const {
+      return static_cast<int>(
+          std::lower_bound(columns.begin() + row_start[a], columns.begin() + row_start[a + 1], b) -
+          columns.begin());
+    }
+    std::vector<int> row_start, columns;
+  };
+
+  // The reduced camera system S x = rhs (its upper block triangle), one per thread:
+  // dense, or the blocks of `pattern` (nullptr: dense).
   struct ReducedSystem {
-    ReducedSystem(int n, bool dense) : n(n), dense(dense), rhs(Eigen::VectorXd::Zero(6 * n)) {
-      if (dense) matrix = Eigen::MatrixXd::Zero(6 * n, 6 * n);
+    ReducedSystem(int n, const BlockPattern* pattern)
+        : n(n), pattern(pattern), rhs(Eigen::VectorXd::Zero(6 * n)) {
+      if (pattern == nullptr)
+        matrix = Eigen::MatrixXd::Zero(6 * n, 6 * n);
+      else
+        blocks.assign(pattern->columns.size(), Matrix6d::Zero());
     }
     void add_block(int a, int b, const Matrix6d& block) {
       if (a > b) return;
-      if (dense) {
+      if (pattern == nullptr)
         matrix.block<6, 6>(6 * a, 6 * b) += block;
-      } else {
-        auto [it, inserted] = blocks.try_emplace(static_cast<int64_t>(a) * n + b, block);
-        if (!inserted) it->second += block;
-      }
+      else
+        blocks[pattern->place(a, b)] += block;
     }
     void add(const ReducedSystem& other) {
       rhs += other.rhs;
-      if (dense) {
+      if (pattern == nullptr) {
         matrix.triangularView<Eigen::Upper>() += other.matrix;
       } else {
-        for (const auto& [key, block] : other.blocks) {
-          auto [it, inserted] = blocks.try_emplace(key, block);
-          if (!inserted) it->second += block;
-        }
+        for (size_t k = 0; k < blocks.size(); ++k) blocks[k] += other.blocks[k];
       }
     }
     int n;
-    bool dense;
+    const BlockPattern* pattern;
     Eigen::VectorXd rhs;
     Eigen::MatrixXd matrix;
-    std::unordered_map<int64_t, Matrix6d> blocks;
+    std::vector<Matrix6d> blocks;
   };
+
+  // The block of the frame of observation o (-1: not free).
+  int block_of(int o) const { return frame_block_[image_frame_[observations_[o].image]]; }
 
   // The Levenberg-Marquardt step with damping mu: (H + mu D) x = -g, H = J^T J, D its
   // diagonal (clamped as Ceres's), points eliminated first.
@@ -333,7 +386,7 @@ class Adjuster {
     parallel_for(num_threads_, observations_.size(), [&](size_t begin, size_t end, size_t t) {
       std::vector<Matrix6d>& hessian = partial_hessian[t];
       for (size_t o = begin; o < end; ++o) {
-        const int block = frame_block_[image_frame_[observations_[o].image]];
+        const int block = block_of(o);
         if (block >= 0)
           hessian[block] += linearised_[o].frame_jacobian.transpose() *
                             linearised_[o].frame_jacobian;
@@ -347,9 +400,9 @@ class Adjuster {
       frame_diagonal[b] = frame_hessian[b].diagonal().cwiseMax(kMinDiagonal).cwiseMin(kMaxDiagonal);
       frame_hessian[b].diagonal() += mu * frame_diagonal[b];
     }
-    const bool dense = n <= kMaxDenseFrames;
+    const bool dense = dense_;
     std::vector<ReducedSystem> systems;
-    for (int t = 0; t < num_threads_; ++t) systems.emplace_back(n, dense);
+    for (int t = 0; t < num_threads_; ++t) systems.emplace_back(n, dense ? nullptr : &pattern_);
     for (int b = 0; b < n; ++b) {
       systems[0].add_block(b, b, frame_hessian[b]);
       systems[0].rhs.segment<6>(6 * b) = -frame_gradient_[b];
@@ -372,7 +425,7 @@ class Adjuster {
           const int o = point_observations_[k];
           const Linearised& lin = linearised_[o];
           hessian += lin.point_jacobian.transpose() * lin.point_jacobian;
-          const int block = frame_block_[image_frame_[observations_[o].image]];
+          const int block = block_of(o);
           if (block >= 0) {
             coupling.push_back(lin.frame_jacobian.transpose() * lin.point_jacobian);
             coupling_block.push_back(block);
@@ -424,15 +477,17 @@ class Adjuster {
     } else {
       std::vector<Eigen::Triplet<double>> triplets;
       triplets.reserve(system.blocks.size() * 36);
-      for (const auto& [key, block] : system.blocks) {
-        const int a = static_cast<int>(key / n), b = static_cast<int>(key % n);
-        for (int r = 0; r < 6; ++r)
-          for (int c = 0; c < 6; ++c) {
-            const int row = 6 * a + r, col = 6 * b + c;
-            if (row > col || fixed[row] || fixed[col]) continue;
-            triplets.emplace_back(row, col, block(r, c));
-          }
-      }
+      for (int a = 0; a < n; ++a)
+        for (int k = pattern_.row_start[a]; k < pattern_.row_start[a + 1]; ++k) {
+          const int b = pattern_.columns[k];
+          const Matrix6d& block = system.blocks[k];
+          for (int r = 0; r < 6; ++r)
+            for (int c = 0; c < 6; ++c) {
+              const int row = 6 * a + r, col = 6 * b + c;
+              if (row > col || fixed[row] || fixed[col]) continue;
+              triplets.emplace_back(row, col, block(r, c));
+            }
+        }
       for (int i = 0; i < 6 * n; ++i)
         if (fixed[i]) {
           triplets.emplace_back(i, i, 1.0);
@@ -507,6 +562,8 @@ class Adjuster {
   std::vector<int> frame_block_;
   int num_blocks_ = 0;
   std::vector<int> point_start_, point_observations_;
+  bool dense_ = true;     // whether the reduced camera system is dense
+  BlockPattern pattern_;  // its blocks where it is not
   std::vector<Linearised> linearised_;
   std::vector<Vector6d> frame_gradient_;
   std::vector<Eigen::Vector3d> point_gradient_;
