@@ -104,9 +104,8 @@ class Model:
         # looks up the points of many images' keypoints at once (flat_offset + keypoint).
         sizes = [len(db.images[image_id].keypoints) for image_id in self.image_ids]
         starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-        self.flat_offset = dict(zip(self.image_ids, starts[:-1].tolist()))
-        self._flat_offsets = np.zeros(max(self.image_ids, default=0) + 1, np.int64)
-        self._flat_offsets[self.image_ids] = starts[:-1]
+        self.flat_offset = np.zeros(max(self.image_ids, default=0) + 1, np.int64)  # by image id
+        self.flat_offset[self.image_ids] = starts[:-1]
         self.point_of_flat = np.full(int(starts[-1]), -1, dtype=np.int64)
         self.image_of_flat = np.repeat(np.array(self.image_ids, np.int32), sizes)
         self.rays_flat = np.zeros((int(starts[-1]), 3))  # rays[image_id] are views of it
@@ -142,7 +141,7 @@ class Model:
             angles = pixel_angles(camera, keypoints)
             angles[~np.isfinite(ray).all(axis=1)] = np.nan
             ray[~np.isfinite(angles)] = (0.0, 0.0, 1.0)
-            start = self.flat_offset[image_id]
+            start = int(self.flat_offset[image_id])
             self.rays_flat[start:start + len(ray)] = ray
             self.rays[image_id] = self.rays_flat[start:start + len(ray)]
             self.pixel_angles[image_id] = angles
@@ -343,7 +342,7 @@ class Model:
 
     def flat_index(self, image_ids: np.ndarray, kps: np.ndarray) -> np.ndarray:
         """Indices into point_of_flat / rays_flat of keypoints `kps` of `image_ids` (pairwise)."""
-        return self._flat_offsets[image_ids] + kps
+        return self.flat_offset[image_ids] + kps
 
     def observations(self, image_id: int) -> tuple[np.ndarray, np.ndarray]:
         """Keypoint indices of an image that observe points, and those point ids."""

@@ -76,7 +76,7 @@ class IncrementalMapper:
         self._matched_keypoints = {
             image_id: (np.fromiter(pairs, np.int64, len(pairs)),
                        np.array([len(m) for m in pairs.values()]),
-                       np.concatenate([m[:, 1].astype(flat_type) + model.flat_offset[other]
+                       np.concatenate([m[:, 1].astype(flat_type) + int(model.flat_offset[other])
                                        for other, m in pairs.items()]))
             for image_id, pairs in self.graphs.verified.items() if pairs}
 
