@@ -209,12 +209,14 @@ def test_segmented_object_ring_end_to_end(object_ring, tmp_path: Path, method: s
     assert report["C_err_max"] < 0.12
 
 
-def reconstruct_real_set(images: Path, truth: GroundTruth, workspace: Path) -> tuple[dict, dict]:
+def reconstruct_real_set(images: Path, truth: GroundTruth, workspace: Path,
+                         exact_matching: bool = False) -> tuple[dict, dict]:
     """`reconstruct` on a real set with its ground-truth intrinsics (seed 0): the run's
     summary and the evaluation of its first model."""
     camera = next(iter(truth.cameras.values()))
     params = ",".join(repr(float(p)) for p in camera.params)
-    summary = main(images, workspace, camera.model.name, params, seed=0)
+    summary = main(images, workspace, camera.model.name, params, exact_matching=exact_matching,
+                   seed=0)
     report = evaluate(pycolmap.Reconstruction(summary["models"][0]["path"]), truth)
     return summary, report
 
@@ -252,11 +254,15 @@ def test_dino_sparse_ring_end_to_end(tmp_path: Path, real_data: Path) -> None:
     share 18-27 matches and hardly any points); the arcs are joined by the similarity
     that images 6 and 13, posed among the other arc's points, agree on. Issue 15's bound:
     one model of 16 and R_err max at most 0.45 deg on every seed 0-9, here the mapper's
-    seeds 0-9 on the database of reconstruct's seed 0. Measured: R_err max 0.257-0.331 deg
-    (0.274 for seed 0), C_err max 0.0104 for seed 0."""
+    seeds 0-9 on the database of reconstruct's seed 0, matched exactly. Measured: R_err max
+    0.350 deg for seed 0 (C_err max 0.0123), 0.351-0.385 for seeds 1-9; on a database from
+    pycolmap's FAISS index 0.257-0.331 (0.274 for seed 0)."""
     folder = real_data / "dinoSparseRing"
     truth = read_ground_truth(folder)
-    summary, report = reconstruct_real_set(folder, truth, tmp_path / "ws")
+    # Exact matching: the same database on every run. With pycolmap's FAISS index, one run
+    # in this session's five got 3431 raw matches instead of 3460 (matching.py) and two
+    # models of 9 and 7 images; a weak link across a gap is that easily lost.
+    summary, report = reconstruct_real_set(folder, truth, tmp_path / "ws", exact_matching=True)
     assert len(summary["models"]) == 1
     assert report["num_registered"] == 16
     assert report["R_err_max_deg"] < 0.45
