@@ -25,8 +25,8 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.pipeline import StageTimer, merge_models, reconstruct
 from colmap_ext.mapper.descriptors import NearestDescriptors
 from colmap_ext.mapper.filtering import rotation_uncertainty
-from colmap_ext.mapper.initial_pair import (MAX_CANDIDATE_PAIRS, choose_initial_pair,
-                                             reconstruct_pair)
+from colmap_ext.mapper.initial_pair import (MAX_CANDIDATE_PAIRS, PARALLAX_SHARE,
+                                             choose_initial_pair, parallax_deg, reconstruct_pair)
 from colmap_ext.mapper.two_view import pair_graph, verified_matches
 
 # Bounds on the 12-view synthetic ring for the tests added with them (orders, image
@@ -137,9 +137,10 @@ def test_synthetic_ring_from_database_matches_alone(synthetic, monkeypatch):
 
 def test_initial_pair_has_most_points_among_the_wide_and_relaxes_as_colmap(synthetic):
     """The initial pair: most triangulated points among the candidates (the pairs with
-    most matches) whose median triangulation angle reaches
-    initialization.min_tri_angle_deg. Where no candidate is that wide the angle halves,
-    as COLMAP relaxes it, and the mapper still starts."""
+    most matches among those whose parallax reaches PARALLAX_SHARE of the angle) whose
+    median triangulation angle reaches initialization.min_tri_angle_deg. Where no
+    candidate is that wide the angle halves, as COLMAP relaxes it, and the mapper still
+    starts."""
     folder, _ = synthetic
     db = read_database(folder / "database.db")
     options = MapperOptions(seed=0)
@@ -147,26 +148,53 @@ def test_initial_pair_has_most_points_among_the_wide_and_relaxes_as_colmap(synth
                                options.guided_matching.num_neighbors, 2**26, num_threads=2)
     model = Model(db, store)
     matches = verified_matches(model, options.two_view, options.seed, progress=False)
-    candidates = sorted(matches, key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
-    two_views = [t for pair in candidates
+    ranked = sorted(matches, key=lambda pair: -len(matches[pair]))
+    parallax = {pair: parallax_deg(model, pair, matches[pair], options.two_view, options.seed)
+                for pair in ranked}
+    two_views = {pair: t for pair in ranked
                  if (t := reconstruct_pair(model, pair, matches[pair], options.initialization,
                                            options.two_view, options.triangulation,
-                                           options.seed)) is not None]
-    angles = sorted(t.median_angle_deg for t in two_views)
+                                           options.seed)) is not None}
+    angles = sorted(t.median_angle_deg for t in two_views.values())
     assert len(two_views) >= 12 and angles[-1] > 2 * angles[0]
+
     def choose():
         return choose_initial_pair(model, matches, options.initialization, options.two_view,
                                    options.triangulation, set(), options.seed)
 
     for min_angle in (angles[0], angles[len(angles) // 2], angles[-1]):
         options.initialization.min_tri_angle_deg = min_angle
+        candidates = [pair for pair in ranked
+                      if parallax[pair] >= PARALLAX_SHARE * min_angle][:MAX_CANDIDATE_PAIRS]
+        wide = [two_views[pair] for pair in candidates if pair in two_views
+                and two_views[pair].median_angle_deg >= min_angle]
         chosen = choose()
-        wide = [t for t in two_views if t.median_angle_deg >= min_angle]
         assert chosen.median_angle_deg >= min_angle
         assert len(chosen.matches) == max(len(t.matches) for t in wide)
     # Four times the widest pair's angle, halved twice: the widest pair.
     options.initialization.min_tri_angle_deg = 4 * angles[-1]
     assert choose().median_angle_deg == angles[-1]
+
+
+def test_parallax_is_the_median_triangulation_angle(synthetic):
+    """A pair's parallax (from a 64-match sample's relative rotation) is close to the
+    median angle of its reconstructed points, and none for an image with itself."""
+    folder, _ = synthetic
+    db = read_database(folder / "database.db")
+    options = MapperOptions(seed=0)
+    store = NearestDescriptors(db.descriptors, {i: len(db.images[i].keypoints) for i in db.images},
+                               options.guided_matching.num_neighbors, 2**26, num_threads=2)
+    model = Model(db, store)
+    matches = verified_matches(model, options.two_view, options.seed, progress=False)
+    for pair, pair_matches in sorted(matches.items())[:10]:
+        reconstructed = reconstruct_pair(model, pair, pair_matches, options.initialization,
+                                         options.two_view, options.triangulation, options.seed)
+        parallax = parallax_deg(model, pair, pair_matches, options.two_view, options.seed)
+        assert parallax == pytest.approx(reconstructed.median_angle_deg, rel=0.15)
+    image_id = pair[0]
+    keypoints = np.arange(len(db.images[image_id].keypoints))
+    same = np.stack([keypoints, keypoints], axis=1)
+    assert parallax_deg(model, (image_id, image_id), same, options.two_view, options.seed) < 0.01
 
 
 def test_cli_writes_text_and_refuses_to_overwrite(synthetic, tmp_path):

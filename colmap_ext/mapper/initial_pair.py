@@ -25,10 +25,16 @@ from colmap_ext.mapper.triangulation import (Tracks, shared_observation_groups,
                                               triangulate_points)
 from colmap_ext.mapper.two_view import Pair, relative_pose
 
-# Pairs evaluated when the mapper chooses: the ones with most verified matches; and
-# frames, those with most verified matches between their images.
+# Pairs reconstructed at each angle the mapper tries (best_pair); frames tried, those
+# with most verified matches between their images.
 MAX_CANDIDATE_PAIRS = 40
 MAX_CANDIDATE_FRAMES = 40
+# A pair is a candidate at an angle where its parallax (parallax_deg, the median over
+# all its matches) reaches this share of it: the angle it must reach is the median over
+# the points that triangulate well, which leave out the narrowest.
+PARALLAX_SHARE = 0.75
+# Matches per pair whose relative pose gives its parallax (parallax_deg).
+PARALLAX_SAMPLE = 64
 
 
 @dataclass
@@ -165,26 +171,48 @@ def best_pair(model: Model, matches: dict[Pair, np.ndarray],
               initialization: InitializationOptions, two_view: TwoViewOptions,
               triangulation: TriangulationOptions, excluded: set[Pair],
               seed: int | None) -> TwoViewReconstruction | None:
-    """The best-conditioned among the pairs of images of two frames with most matches:
-    most well-triangulated points among those whose median triangulation angle reaches
-    initialization.min_tri_angle_deg. As COLMAP relaxes its initialization, the angle
-    halves while no pair reaches it, down to triangulation.min_tri_angle_deg. A pair
-    that fails joins `excluded`. `seed`: the RANSAC's (None: unseeded)."""
-    candidates = sorted((pair for pair, m in matches.items()
-                         if len(m) >= initialization.min_num_inliers and pair not in excluded
-                         and model.frame_id(pair[0]) != model.frame_id(pair[1])),
-                        key=lambda pair: -len(matches[pair]))[:MAX_CANDIDATE_PAIRS]
-    reconstructed = []
-    for pair in candidates:
-        candidate = reconstruct_pair(model, pair, matches[pair], initialization, two_view,
-                                     triangulation, seed)
-        if candidate is None:
-            excluded.add(pair)
-        else:
-            reconstructed.append(candidate)
+    """The best-conditioned pair of images of two frames: most well-triangulated points
+    among the pairs whose median triangulation angle reaches
+    initialization.min_tri_angle_deg. Every verified pair is a candidate, ranked before
+    it is reconstructed: at each angle, the MAX_CANDIDATE_PAIRS pairs with most matches
+    among those whose parallax (parallax_deg) reaches PARALLAX_SHARE of it are
+    reconstructed. On a sequence the pairs with most matches are neighbours without
+    parallax; on an object most are wide, and these are the pairs with most matches
+    (as before the parallax was asked). As COLMAP relaxes
+    its initialization, the angle halves while no pair reaches it, down to
+    triangulation.min_tri_angle_deg. A pair that fails joins `excluded`. `seed`: the
+    RANSAC's (None: unseeded)."""
+    ranked = sorted((pair for pair, m in matches.items()
+                     if len(m) >= initialization.min_num_inliers and pair not in excluded
+                     and model.frame_id(pair[0]) != model.frame_id(pair[1])),
+                    key=lambda pair: -len(matches[pair]))
+    parallax: dict[Pair, float] = {}  # of the pairs ranked[:len(parallax)]
+    reconstructed: dict[Pair, TwoViewReconstruction] = {}
     min_angle = initialization.min_tri_angle_deg
-    while reconstructed:
-        wide = [candidate for candidate in reconstructed if candidate.median_angle_deg >= min_angle]
+    while True:
+        # The pairs with most matches among the wide enough, their parallax found in
+        # rank order as far as it takes: on an object, a few more than
+        # MAX_CANDIDATE_PAIRS; on a sequence, every pair.
+        candidates = [pair for pair in parallax if pair not in excluded
+                      and parallax[pair] >= PARALLAX_SHARE * min_angle]
+        for pair in ranked[len(parallax):]:
+            if len(candidates) >= MAX_CANDIDATE_PAIRS:
+                break
+            parallax[pair] = parallax_deg(model, pair, matches[pair], two_view, seed)
+            if parallax[pair] >= PARALLAX_SHARE * min_angle:
+                candidates.append(pair)
+        candidates = candidates[:MAX_CANDIDATE_PAIRS]
+        for pair in candidates:
+            if pair in reconstructed:
+                continue
+            candidate = reconstruct_pair(model, pair, matches[pair], initialization, two_view,
+                                         triangulation, seed)
+            if candidate is None:
+                excluded.add(pair)
+            else:
+                reconstructed[pair] = candidate
+        wide = [candidate for candidate in reconstructed.values()
+                if candidate.median_angle_deg >= min_angle]
         # Most points first; a rig's frames must also give their relative pose
         # (with_frames), asked of one candidate at a time: it is the costly step.
         for candidate in sorted(wide, key=lambda candidate: -len(candidate.matches)):
@@ -192,11 +220,29 @@ def best_pair(model: Model, matches: dict[Pair, np.ndarray],
             if framed is not None:
                 return framed
             excluded.add(candidate.pair)
-            reconstructed = [other for other in reconstructed if other is not candidate]
+            del reconstructed[candidate.pair]
         if min_angle / 2 < triangulation.min_tri_angle_deg:
-            break
+            return None
         min_angle /= 2
-    return None
+
+
+def parallax_deg(model: Model, pair: Pair, matches: np.ndarray, two_view: TwoViewOptions,
+                 seed: int | None) -> float:
+    """The median triangulation angle of a pair's matches, from the relative rotation of
+    a 5-point RANSAC on at most PARALLAX_SAMPLE of them (a match's angle is that between
+    its two rays in one frame: the rotation alone gives it); 0 where the sample gives no
+    pose. Cheap enough to rank every verified pair before any is reconstructed."""
+    sample = matches[np.linspace(0, len(matches) - 1, min(len(matches), PARALLAX_SAMPLE))
+                     .astype(np.int64)]
+    result = relative_pose(model, pair, sample, two_view.max_error_px, min_num_inliers=5,
+                           seed=seed)
+    if result is None:
+        return 0.0
+    inliers = sample[result.inlier_mask]
+    rays1 = model.rays[pair[0]][inliers[:, 0]]
+    rays2 = model.rays[pair[1]][inliers[:, 1]] @ result.cam2_from_cam1.rotation.matrix()
+    cosines = np.clip(np.einsum("ij,ij->i", rays1, rays2), -1.0, 1.0)
+    return float(np.degrees(np.median(np.arccos(cosines))))
 
 
 def check_requested_pair(image_ids: Iterable[int], initialization: InitializationOptions) -> None:
