@@ -145,7 +145,8 @@ def generalized_relative_pose(rays1, camera_index1, rays2, camera_index2,
     - "fivept_plus_one" (default): the 5-point solver on five correspondences of one
       camera pair, the scale from a sixth of another pair; needs a camera pair with five
       correspondences and another with one (a rig moving, its cameras seeing the scene
-      again), and is the fastest by far (BENCHMARKS.md).
+      again), and is the fastest by far (docs/experiments/benchmarks-history.md,
+      "Solvers").
     - "sixpt": Stewenius' generalized 6-point solver, for any correspondences; each
       sample takes milliseconds.
     - "seventeenpt": Li's linear 17 points, whose sample needs far more iterations with

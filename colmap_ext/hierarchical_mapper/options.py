@@ -13,8 +13,8 @@ from colmap_ext.mapper.options import BundleAdjustmentOptions, MapperOptions, Me
 # a global adjustment each time a cluster's model grows by half (the flat mapper's, as
 # COLMAP's, each time it grows by a tenth). Every cluster is adjusted again within the
 # joined model, and the sparser schedule is most of what makes a cluster task cheaper
-# than COLMAP's (BENCHMARKS.md, scale-out). Small models need the frequent schedule,
-# so `mapper` keeps it.
+# than COLMAP's (docs/experiments/benchmarks-history.md, "Scale-out"). Small models need
+# the frequent schedule, so `mapper` keeps it.
 MAPPER_DEFAULTS = MapperOptions(bundle_adjustment=BundleAdjustmentOptions(global_images_ratio=1.5))
 
 
