@@ -52,8 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workspace_path", required=True,
                         help="gets database.db, sparse/0, ... and reconstruct_summary.json")
     parser.add_argument("--camera_model", default=None,
-                        help="a COLMAP camera model, e.g. PINHOLE, OPENCV (not needed with a "
-                             "--rig_config that names each camera's)")
+                        help="a COLMAP camera model, e.g. PINHOLE, OPENCV (not with a "
+                             "--rig_config, which names each camera's)")
     parser.add_argument("--camera_params", default=None,
                         help='the known intrinsics in COLMAP order, e.g. "fx,fy,cx,cy"')
     parser.add_argument("--rig_config", default=None,
