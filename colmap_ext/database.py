@@ -22,8 +22,12 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.errors import UserError
+from colmap_ext.rigs import QUATERNION_NORM_TOLERANCE
 
 
+# How far outside its image a keypoint may be (pixels): a simulated one's noise puts it a
+# little outside; far outside, the keypoints are not of the camera's image.
+KEYPOINT_MARGIN_PX = 16
 # Descriptors kept in memory after reading, the most recently used images' first.
 DESCRIPTOR_CACHE_BYTES = 32 * 2**20
 
@@ -200,6 +204,8 @@ def _check_tables(copy: Path, path: Path) -> None:
             for row in conn.execute("SELECT camera_id, model, width, height, params FROM cameras"):
                 _check_camera(*row, path)
             _check_blobs(conn, path, "two_view_geometries" in tables)
+            if "rig_sensors" in tables:
+                _check_sensors_from_rig(conn, path)
     except sqlite3.Error as exc:
         raise UserError(f"cannot read database {path}: {exc}") from None
 
@@ -224,6 +230,27 @@ def _check_camera(camera_id: int, model_id: int, width: int, height: int, params
     if (focal_lengths <= 0).any():
         raise UserError(f"camera {camera_id} in {path} has focal length "
                         f"{', '.join(f'{f:g}' for f in focal_lengths)}; expected a positive one")
+    if not len(focal_lengths) and list(values) != [width, height]:  # EQUIRECTANGULAR
+        raise UserError(f"camera {camera_id} in {path} is {width} x {height} with params "
+                        f"{', '.join(f'{v:g}' for v in values)}; its model "
+                        f"{pycolmap.CameraModelId(model_id).name} takes the image size")
+
+
+def _check_sensors_from_rig(conn: sqlite3.Connection, path: Path) -> None:
+    """Every camera's place on its rig (7 doubles: a unit quaternion, a translation), read
+    as raw bytes: pycolmap takes NULL for no pose, and a zero quaternion as one."""
+    for rig_id, sensor_id, pose in conn.execute(
+            "SELECT rig_id, sensor_id, sensor_from_rig FROM rig_sensors WHERE sensor_type = ?",
+            (int(pycolmap.SensorType.CAMERA),)):
+        values = np.frombuffer(pose, np.float64) if isinstance(pose, bytes) and \
+            len(pose) == 7 * 8 else None
+        if values is None or not np.isfinite(values).all() or \
+                abs(np.linalg.norm(values[:4]) - 1) > QUATERNION_NORM_TOLERANCE:
+            shown = "NULL" if pose is None else "not a pose" if values is None else \
+                f"[{', '.join(f'{v:g}' for v in values)}]"
+            raise UserError(f"rig {rig_id} in {path}: camera {sensor_id}'s sensor_from_rig is "
+                            f"{shown}; expected a unit quaternion and a translation (run "
+                            "colmap rig_configurator again)")
 
 
 def _check_blobs(conn: sqlite3.Connection, path: Path, has_geometries: bool) -> None:
@@ -297,6 +324,15 @@ def _read_open_database(db: pycolmap.Database, path: Path) -> DatabaseContents:
         if not np.isfinite(image.keypoints).all():
             raise UserError(f"the keypoints of image {image.name} in {path} are not all finite "
                             "numbers (NaN or infinity)")
+        camera = cameras[image.camera_id]
+        outside = np.any((image.keypoints < -KEYPOINT_MARGIN_PX) |
+                         (image.keypoints > [camera.width + KEYPOINT_MARGIN_PX,
+                                             camera.height + KEYPOINT_MARGIN_PX]), axis=1)
+        if outside.any():
+            x, y = image.keypoints[outside][0]
+            raise UserError(f"{outside.sum()} keypoints of image {image.name} in {path} are "
+                            f"outside its camera's {camera.width} x {camera.height} image, "
+                            f"e.g. ({x:g}, {y:g})")
     if sum(len(image.keypoints) for image in images.values()) == 0:
         raise UserError(f"the database has no keypoints: {path} (run feature extraction first)")
 
@@ -343,6 +379,14 @@ def _read_rigs_and_frames(db: pycolmap.Database, contents: DatabaseContents, pat
                 image.image_id not in frame.image_ids:
             raise UserError(f"image {image.name} in {path} has no frame whose rig holds its "
                             f"camera {image.camera_id}: run colmap rig_configurator again")
+    for frame_id, frame in contents.frames.items():
+        by_camera: dict[int, str] = {}
+        for image in (contents.images[i] for i in frame.image_ids if i in contents.images):
+            first = by_camera.setdefault(image.camera_id, image.name)
+            if first != image.name:
+                raise UserError(f"frame {frame_id} in {path} holds images {first} and "
+                                f"{image.name} of one camera ({image.camera_id}); a frame "
+                                "holds one image per camera: run colmap rig_configurator again")
 
 
 _FAILED_CONFIGS = (pycolmap.TwoViewGeometryConfiguration.UNDEFINED,

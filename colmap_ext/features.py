@@ -50,12 +50,25 @@ MAX_IMAGES_PER_TASK = 16
 # six cube faces rendered from it, the keypoints mapped back (panorama.py).
 PANORAMA_FEATURES = ("equirectangular", "cube_faces")
 DEFAULT_PANORAMA_FEATURES = "equirectangular"
+# A focal length this many times the image's larger side sees under 0.06 degrees: a wrong
+# parameter (a telephoto lens on a full-frame sensor is about 50).
+MAX_FOCAL_LENGTH_RATIO = 1000
 # COLMAP's SIFT keeps this many features per image, the largest; so do the cube faces together.
 MAX_NUM_FEATURES = pycolmap.SiftExtractionOptions().max_num_features
 
 Features = tuple[np.ndarray, pycolmap.FeatureDescriptors]
 # extract(names, peak_threshold): the features of those images, by name.
 Extractor = Callable[[list[str], float], dict[str, Features]]
+
+
+@dataclass(frozen=True)
+class CameraGroup:
+    """Images that share one camera, its model and params; `label` says why, for messages."""
+
+    label: str
+    names: list[str]
+    camera_model: str
+    params: list[float]
 
 
 @dataclass(frozen=True)
@@ -198,39 +211,45 @@ def read_sizes(folder: Path, names: Sequence[str], suffix: str = "") -> dict[str
         return dict(zip(names, pool.map(image_size, paths)))
 
 
-def check_images(image_path: str | os.PathLike, names: Sequence[str], camera_mode: str,
-                 camera_model: str, params: Sequence[float],
-                 mask_path: str | os.PathLike | None = None) -> dict[str, tuple[int, int]]:
-    """Check that every image reads, that images sharing a camera share its size and
-    contain its principal point (are of its size, for a camera without one, such as
-    EQUIRECTANGULAR), and that every image has a mask of its size."""
-    if camera_mode not in CAMERA_MODES:
-        raise UserError(f"unknown camera mode {camera_mode!r}; choose one of "
+def check_images(image_path: str | os.PathLike, names: Sequence[str],
+                 options: FeatureOptions) -> dict[str, tuple[int, int]]:
+    """Check that every image reads, that the images sharing a camera share a size its
+    parameters fit (`check_camera_fits`), and that every image has a mask of its size."""
+    if options.camera_mode not in CAMERA_MODES:
+        raise UserError(f"unknown camera mode {options.camera_mode!r}; choose one of "
                         f"{', '.join(CAMERA_MODES)}")
     sizes = read_sizes(Path(image_path), names)
-    groups: dict[str, list[str]] = {}
-    for name in names:
-        groups.setdefault(posix_parent(name) if camera_mode == "per_folder" else "", []).append(name)
-    for members in groups.values():
-        odd = [name for name in members if sizes[name] != sizes[members[0]]]
+    for group in options.camera_groups(names):
+        odd = [name for name in group.names if sizes[name] != sizes[group.names[0]]]
         if odd:
-            (w0, h0), (w1, h1) = sizes[members[0]], sizes[odd[0]]
-            raise UserError(f"images sharing one camera must have one size: {members[0]} is "
-                            f"{w0}x{h0}, {odd[0]} is {w1}x{h1} (camera mode {camera_mode})")
-    camera = pycolmap.Camera.create_from_model_name(0, camera_model, 1.0, 1, 1)
-    principal_point = [params[i] for i in camera.principal_point_idxs()]
-    for width, height in set(sizes.values()):
-        if not principal_point and [width, height] != list(params):  # EQUIRECTANGULAR
-            raise UserError(f"camera params {','.join(f'{p:g}' for p in params)} "
-                            f"({camera.params_info}) are not the images' size {width}x{height}")
-        if principal_point and not (0 <= principal_point[0] <= width and
-                                    0 <= principal_point[1] <= height):
-            raise UserError(f"principal point ({principal_point[0]:g}, {principal_point[1]:g}) "
-                            f"is outside the {width}x{height} images: are the camera params "
-                            "for another image size?")
-    if mask_path is not None:
-        check_masks(Path(mask_path), sizes)
+            (w0, h0), (w1, h1) = sizes[group.names[0]], sizes[odd[0]]
+            raise UserError(f"images sharing one camera must have one size: {group.names[0]} "
+                            f"is {w0}x{h0}, {odd[0]} is {w1}x{h1} ({group.label})")
+        check_camera_fits(group.camera_model, group.params, *sizes[group.names[0]])
+    if options.mask_path is not None:
+        check_masks(Path(options.mask_path), sizes)
     return sizes
+
+
+def check_camera_fits(camera_model: str, params: Sequence[float], width: int,
+                      height: int) -> None:
+    """The parameters describe a camera of `width` x `height` pixels: its principal point
+    inside, its focal lengths below MAX_FOCAL_LENGTH_RATIO times the larger side (the size
+    itself, for a camera without them, such as EQUIRECTANGULAR)."""
+    camera = pycolmap.Camera.create_from_model_name(0, camera_model, 1.0, 1, 1)
+    shown = f"camera params {','.join(f'{p:g}' for p in params)} ({camera.params_info})"
+    principal_point = [params[i] for i in camera.principal_point_idxs()]
+    if not principal_point and [width, height] != list(params):  # EQUIRECTANGULAR
+        raise UserError(f"{shown} are not the images' size {width:g}x{height:g}")
+    if principal_point and not (0 <= principal_point[0] <= width and
+                                0 <= principal_point[1] <= height):
+        raise UserError(f"principal point ({principal_point[0]:g}, {principal_point[1]:g}) "
+                        f"is outside the {width:g}x{height:g} images: are the camera params "
+                        "for another image size?")
+    if any(params[i] > MAX_FOCAL_LENGTH_RATIO * max(width, height)
+           for i in camera.focal_length_idxs()):
+        raise UserError(f"{shown}: a focal length over {MAX_FOCAL_LENGTH_RATIO} times the "
+                        f"{width:g}x{height:g} images' size is no lens's")
 
 
 def check_masks(mask_path: Path, sizes: dict[str, tuple[int, int]]) -> None:
@@ -268,6 +287,9 @@ class FeatureOptions:
     domain_size_pooling: bool = False
     # EQUIRECTANGULAR cameras: one of PANORAMA_FEATURES (other cameras: not used).
     panorama_features: str = DEFAULT_PANORAMA_FEATURES
+    # A rig configuration's cameras, image prefix -> (model, params): the images under each
+    # prefix share its camera instead (camera_model and camera_params are then the first's).
+    rig_cameras: dict[str, tuple[str, list[float]]] | None = None
 
     def check(self) -> None:
         """The camera, the keypoint minimum and the panorama features (the images:
@@ -279,15 +301,49 @@ class FeatureOptions:
         if self.panorama_features not in PANORAMA_FEATURES:
             raise UserError(f"unknown panorama features {self.panorama_features!r}; choose one "
                             f"of {', '.join(PANORAMA_FEATURES)}")
+        if self.rig_cameras is not None:
+            for model, params in self.rig_cameras.values():
+                check_camera(model, params)
+            if self.uses_cube_faces() and len({(model, tuple(params)) for model, params
+                                               in self.rig_cameras.values()}) > 1:
+                raise UserError("panorama features on cube faces need the rig's cameras to be "
+                                "EQUIRECTANGULAR of one size")
+
+    def camera_groups(self, names: Sequence[str]) -> list[CameraGroup]:
+        """The images (of `names`) that share one camera, with its model and params: all
+        of them (camera mode single), those of each folder (per_folder), or those under
+        each rig camera's image prefix (`rig_cameras`)."""
+        if self.rig_cameras is not None:
+            groups = [CameraGroup(f"image prefix {prefix!r}",
+                                  [name for name in names if name.startswith(prefix)],
+                                  model, list(params))
+                      for prefix, (model, params) in self.rig_cameras.items()]
+            return [group for group in groups if group.names]
+        folders: dict[str, list[str]] = {}
+        for name in names:
+            folder = posix_parent(name) if self.camera_mode == "per_folder" else ""
+            folders.setdefault(folder, []).append(name)
+        label = f"camera mode {self.camera_mode}"
+        return [CameraGroup(label if self.camera_mode == "single" else f"{label}, folder "
+                            f"{folder!r}", members, self.camera_model, self.params())
+                for folder, members in folders.items()]
+
+    def uses_cube_faces(self) -> bool:
+        """SIFT on the cube faces of EQUIRECTANGULAR panoramas (panorama.py)."""
+        return self.camera_model == "EQUIRECTANGULAR" and self.panorama_features == "cube_faces"
 
     def params(self) -> list[float]:
         """The camera parameters as floats, checked against the camera model."""
         return check_camera(self.camera_model, self.camera_params)
 
-    def reader_options(self, mask_path: str | os.PathLike | None) -> pycolmap.ImageReaderOptions:
-        """pycolmap's reader with the camera fixed and the masks in `mask_path`."""
+    def reader_options(self, mask_path: str | os.PathLike | None,
+                       camera: tuple[str, Sequence[float]] | None = None,
+                       ) -> pycolmap.ImageReaderOptions:
+        """pycolmap's reader with the camera fixed (`camera`: model and params, else the
+        options' own) and the masks in `mask_path`."""
+        model, params = camera or (self.camera_model, self.params())
         reader = pycolmap.ImageReaderOptions(
-            camera_model=self.camera_model, camera_params=",".join(repr(p) for p in self.params()))
+            camera_model=model, camera_params=",".join(repr(float(p)) for p in params))
         if mask_path is not None:
             reader.mask_path = Path(mask_path)
         return reader
@@ -296,7 +352,7 @@ class FeatureOptions:
                   num_threads: int) -> Extractor:
         """SIFT of the images in `image_path` with the masks in `mask_path`: pycolmap's
         extractor on the images, or on the cube faces of EQUIRECTANGULAR panoramas."""
-        if self.camera_model == "EQUIRECTANGULAR" and self.panorama_features == "cube_faces":
+        if self.uses_cube_faces():
             width, height = (int(value) for value in self.params())
             return partial(extract_cube_faces_to_memory, image_path, mask_path,
                            CubeFaces.of_panorama(width, height),
@@ -315,15 +371,23 @@ def extract_features(database_path: str | os.PathLike, image_path: str | os.Path
     start = time.perf_counter()
     options.check()
     names = list_images(image_path, image_names)
-    check_images(image_path, names, options.camera_mode, options.camera_model, options.params(),
-                 options.mask_path)
+    check_images(image_path, names, options)
     check_new_database(Path(database_path))
     with quiet_colmap_logs():
         # Importing first gives image ids in name order, and the cameras.
         pycolmap.Database.open(database_path).close()
-        pycolmap.import_images(database_path, image_path,
-                               camera_mode=CAMERA_MODES[options.camera_mode], image_names=names,
-                               options=options.reader_options(options.mask_path))
+        if options.rig_cameras is None:
+            pycolmap.import_images(database_path, image_path,
+                                   camera_mode=CAMERA_MODES[options.camera_mode],
+                                   image_names=names,
+                                   options=options.reader_options(options.mask_path))
+        else:  # a camera per prefix; prefix order is name order, as no prefix holds another
+            for group in sorted(options.camera_groups(names), key=lambda group: group.names):
+                pycolmap.import_images(database_path, image_path,
+                                       camera_mode=pycolmap.CameraMode.SINGLE,
+                                       image_names=group.names,
+                                       options=options.reader_options(
+                                           options.mask_path, (group.camera_model, group.params)))
     executor = executor or LocalExecutor()
     groups = chunks(names, items_per_task(len(names), MAX_IMAGES_PER_TASK, executor.num_workers))
     sources = executor.image_sources(str(image_path), None if options.mask_path is None

@@ -31,6 +31,8 @@ FORMATS = ("middlebury", "strecha", "colmap")
 
 # Rows of text rotations are orthonormal to ~1e-6; far beyond that the file is not a rotation.
 _ROTATION_TOLERANCE = 1e-3
+# Poses and intrinsics in any unit stay far below this; beyond it, their squares overflow.
+_MAX_MAGNITUDE = 1e12
 
 
 @dataclass(frozen=True)
@@ -236,4 +238,6 @@ def _parse_numbers(fields: list[str], expected: int, path: Path, line: int, what
         raise UserError(f"{path}:{line}: not a number in {' '.join(fields)!r} ({what})") from None
     if not np.all(np.isfinite(values)):
         raise UserError(f"{path}:{line}: non-finite number ({what})")
+    if np.abs(values).max() > _MAX_MAGNITUDE:
+        raise UserError(f"{path}:{line}: a number beyond {_MAX_MAGNITUDE:g} ({what})")
     return values

@@ -17,6 +17,8 @@ from collections.abc import Callable
 from functools import partial
 from pathlib import Path
 
+import pycolmap
+
 from colmap_ext import distributed, rigs
 from colmap_ext.errors import UserError
 from colmap_ext.features import (
@@ -25,7 +27,6 @@ from colmap_ext.features import (
     DEFAULT_PANORAMA_FEATURES,
     PANORAMA_FEATURES,
     FeatureOptions,
-    check_camera,
     check_images,
     extract_features,
     list_images,
@@ -51,8 +52,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workspace_path", required=True,
                         help="gets database.db, sparse/0, ... and reconstruct_summary.json")
     parser.add_argument("--camera_model", default=None,
-                        help="a COLMAP camera model, e.g. PINHOLE, OPENCV (not needed with a "
-                             "--rig_config that names each camera's)")
+                        help="a COLMAP camera model, e.g. PINHOLE, OPENCV (not with a "
+                             "--rig_config, which names each camera's)")
     parser.add_argument("--camera_params", default=None,
                         help='the known intrinsics in COLMAP order, e.g. "fx,fy,cx,cy"')
     parser.add_argument("--rig_config", default=None,
@@ -112,19 +113,18 @@ def main(image_path: str, workspace_path: str, camera_model: str | None = None,
     workspace = Path(workspace_path)
     if ray_address is not None:
         distributed.check_address(ray_address)
-    rig_configs, camera_model, camera_params = check_rig_config(rig_config, camera_model,
-                                                                camera_params, ray_address)
-    names, params = check_inputs(image_path, workspace, camera_model, camera_params,
-                                 camera_mode, mask_path, segment, min_num_keypoints, matcher,
-                                 output_type)
-    if rig_configs is not None:
-        rigs.check_rig_images(rig_configs, names)
+    rig_configs = None if rig_config is None else rigs.read_rig_config(rig_config)
+    rig_cameras = check_rig_cameras(rig_configs, camera_model, camera_params, camera_mode,
+                                    ray_address)
+    if rig_cameras is not None:
+        camera_model, camera_params = next(iter(rig_cameras.values()))
     if panorama_features is not None and camera_model != "EQUIRECTANGULAR":
         raise UserError(f"--panorama_features is for EQUIRECTANGULAR cameras, not {camera_model}")
-    features = FeatureOptions(camera_model, params, camera_mode, mask_path, min_num_keypoints,
-                              domain_size_pooling,
-                              panorama_features or DEFAULT_PANORAMA_FEATURES)
-    features.check()
+    features = FeatureOptions(camera_model, camera_params, camera_mode, mask_path,
+                              min_num_keypoints, domain_size_pooling,
+                              panorama_features or DEFAULT_PANORAMA_FEATURES, rig_cameras)
+    names = check_inputs(image_path, workspace, features, segment, matcher, output_type,
+                         rig_configs)
     matching = MatchingOptions(matcher=matcher, exact=exact_matching,
                                seed=secrets.randbits(31) if seed is None else seed)
     with replacing(workspace_path, WORKSPACE, overwrite) as new_workspace, \
@@ -149,8 +149,12 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
     database_path = new_workspace / DATABASE_NAME
     timer = StageTimer()
     summary: dict = {"inputs": {
-        "image_path": str(shown(image_path)), "camera_model": features.camera_model,
-        "camera_params": features.camera_params, "camera_mode": features.camera_mode,
+        "image_path": str(shown(image_path)),
+        **({"camera_model": features.camera_model, "camera_params": features.camera_params}
+           if features.rig_cameras is None else {"rig_cameras": {
+               prefix: {"camera_model": model, "camera_params": params}
+               for prefix, (model, params) in features.rig_cameras.items()}}),
+        "camera_mode": features.camera_mode,
         "mask_path": features.mask_path, "segment": segment,
         "min_num_keypoints": features.min_num_keypoints,
         "domain_size_pooling": features.domain_size_pooling,
@@ -190,33 +194,36 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
     return summary
 
 
-def check_rig_config(rig_config: str | None, camera_model: str | None,
-                     camera_params: str | None, ray_address: str | None,
-                     ) -> tuple[list | None, str, str | list[float]]:
-    """The rig configuration (None without one) and the camera to extract with: the flags'
-    or, without them, the configuration's first camera (each camera gets its own from the
-    configuration after extraction)."""
-    configs = None if rig_config is None else rigs.read_rig_config(rig_config)
-    if configs is not None and ray_address is not None:
+def check_rig_cameras(configs: list[pycolmap.RigConfig] | None, camera_model: str | None,
+                      camera_params: str | None, camera_mode: str, ray_address: str | None,
+                      ) -> dict[str, tuple[str, list[float]]] | None:
+    """The cameras of the rig configuration `configs` (None without one), image prefix ->
+    (model, params), every camera's from the configuration; the flags otherwise."""
+    if configs is None:
+        if camera_model is None or camera_params is None:
+            raise UserError("give --camera_model and --camera_params (or a --rig_config)")
+        return None
+    if ray_address is not None:
         raise UserError("--rig_config does not run with --ray_address yet")
-    if camera_model is not None and camera_params is not None:
-        return configs, camera_model, camera_params
     if camera_model is not None or camera_params is not None:
-        raise UserError("give --camera_model and --camera_params together")
-    cameras = [camera.camera for config in configs or [] for camera in config.cameras]
-    if not cameras or any(camera is None for camera in cameras):
+        raise UserError("give --camera_model and --camera_params, or a --rig_config with "
+                        "each camera's camera_model_name and camera_params, not both")
+    if camera_mode != "single":
+        raise UserError(f"--camera_mode {camera_mode} does not go with --rig_config, which "
+                        "gives each image prefix its camera")
+    cameras = {camera.image_prefix: camera.camera for config in configs
+               for camera in config.cameras}
+    if any(camera is None for camera in cameras.values()):
         raise UserError("give --camera_model and --camera_params, or a --rig_config with "
                         "camera_model_name and camera_params for every camera")
-    return configs, cameras[0].model.name, list(cameras[0].params)
+    return {prefix: (camera.model.name, list(camera.params)) for prefix, camera in cameras.items()}
 
 
-def check_inputs(image_path: str, workspace: Path, camera_model: str, camera_params: str,
-                 camera_mode: str, mask_path: str | None, segment: str | None,
-                 min_num_keypoints: int, matcher: str,
-                 output_type: str) -> tuple[list[str], list[float]]:
-    """Every check that can fail, before any work; returns the image names and the
-    camera parameters."""
-    if mask_path is not None and segment is not None:
+def check_inputs(image_path: str, workspace: Path, features: FeatureOptions,
+                 segment: str | None, matcher: str, output_type: str,
+                 rig_configs: list[pycolmap.RigConfig] | None) -> list[str]:
+    """Every check that can fail, before any work; returns the image names."""
+    if features.mask_path is not None and segment is not None:
         raise UserError("give --mask_path or --segment, not both")
     if segment is not None and segment not in METHODS:
         raise UserError(f"unknown --segment {segment!r}; choose one of {', '.join(METHODS)}")
@@ -224,14 +231,14 @@ def check_inputs(image_path: str, workspace: Path, camera_model: str, camera_par
         raise UserError(f"unknown --matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
     if output_type.upper() not in OUTPUT_TYPES:
         raise UserError(f"--output_type must be BIN or TXT, got {output_type!r}")
-    if min_num_keypoints < 0:
-        raise UserError(f"--min_num_keypoints must be >= 0, got {min_num_keypoints}")
-    params = check_camera(camera_model, camera_params)
+    features.check()
     names = list_images(image_path)
-    check_images(image_path, names, camera_mode, camera_model, params, mask_path)
+    if rig_configs is not None:
+        rigs.check_rig_images(rig_configs, names)
+    check_images(image_path, names, features)
     if workspace.exists() and not workspace.is_dir():
         raise UserError(f"workspace path is a file, not a folder: {workspace}")
-    return names, params
+    return names
 
 
 def format_summary(summary: dict, workspace: Path) -> str:

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from colmap_ext.errors import UserError
 from colmap_ext.geometry import rotation_angles_deg
 from colmap_ext.rigs import read_rig_config
 
@@ -62,7 +63,11 @@ def database_rig_frames(database_path: str | Path) -> dict[str, RigFrame]:
 def config_rig_frames(configs: list[pycolmap.RigConfig],
                       image_names: list[str]) -> dict[str, RigFrame]:
     """The frames a rig configuration makes of `image_names`: the images with the same name
-    after each camera's prefix (by that name)."""
+    after each camera's prefix (by that name); a UserError if no image is under a prefix."""
+    prefixes = [camera.image_prefix for config in configs for camera in config.cameras]
+    if not any(name.startswith(prefix) for name in image_names for prefix in prefixes):
+        raise UserError(f"no image of the model is under the rig configuration's image "
+                        f"prefixes ({', '.join(map(repr, prefixes))})")
     result: dict[str, RigFrame] = {}
     for index, config in enumerate(configs):
         frames: dict[str, RigFrame] = {}

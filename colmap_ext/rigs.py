@@ -20,7 +20,10 @@ the rig's reference, so the rig frame written is the first camera's.
 from __future__ import annotations
 
 import argparse
+import json
+import math
 import os
+import re
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -29,6 +32,7 @@ import pycolmap
 import yaml
 
 from colmap_ext.errors import UserError
+from colmap_ext.features import check_camera, check_camera_fits
 from colmap_ext.model_io import write_json
 
 # Kalibr distortion model (with camera_model pinhole) -> COLMAP camera model; the COLMAP
@@ -41,6 +45,15 @@ KALIBR_DISTORTION_MODELS = {
 
 # A pose read from text is a rotation to about 1e-9; far beyond that it is not one.
 _ROTATION_TOLERANCE = 1e-6
+# A quaternion written by hand to four digits ([0.7071, 0, 0.7071, 0]) is one; it is normalized.
+QUATERNION_NORM_TOLERANCE = 1e-3
+# A rig's cameras are closer than this to each other (in any unit a calibration uses).
+MAX_RIG_TRANSLATION = 1e6
+# A rig configuration or camchain file is a few kilobytes; a parser's time and memory grow
+# with the file (a 16 MB camchain took 40 s and 1.2 GB to read).
+MAX_CONFIG_BYTES = 2**20
+# COLMAP's rig configuration nests 5 deep: rigs, a rig, its cameras, a camera, a pose.
+RIG_CONFIG_NESTING = 5
 
 
 @dataclass(frozen=True)
@@ -118,10 +131,9 @@ def read_kalibr_rig(paths: list[Path]) -> list[RigCamera]:
 
 def _read_yaml(path: Path) -> dict[str, dict]:
     """The camera entries (cam0, cam1, ...) of one camchain file, in file order."""
+    text = read_bounded_text(path, "camchain file")
     try:
-        content = yaml.safe_load(path.read_text(encoding="utf-8"))
-    except OSError as exc:
-        raise UserError(f"cannot read {path}: {exc.strerror or exc}") from None
+        content = yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise UserError(f"{path}: not YAML ({str(exc).splitlines()[0]})") from None
     if not isinstance(content, dict) or not content or not all(
@@ -131,23 +143,35 @@ def _read_yaml(path: Path) -> dict[str, dict]:
 
 
 def _colmap_camera(name: str, entry: dict) -> tuple[str, list[float]]:
-    """The COLMAP model and params of one Kalibr camera entry."""
+    """The COLMAP model and params of one Kalibr camera entry: the intrinsics (positive
+    focal lengths, the principal point inside the resolution) and the distortion
+    coefficients, all finite."""
     if entry.get("camera_model") != "pinhole":
         raise UserError(f"{name}: camera_model {entry.get('camera_model')!r} is not supported "
                         "(only pinhole)")
     distortion = entry.get("distortion_model", "none")
-    if distortion not in KALIBR_DISTORTION_MODELS:
+    if not isinstance(distortion, str) or distortion not in KALIBR_DISTORTION_MODELS:
         raise UserError(f"{name}: distortion_model {distortion!r} is not supported; "
                         f"expected one of {', '.join(KALIBR_DISTORTION_MODELS)}")
     model, num_coefficients = KALIBR_DISTORTION_MODELS[distortion]
-    intrinsics = list(entry.get("intrinsics") or [])
-    coefficients = list(entry.get("distortion_coeffs") or [])[:num_coefficients] \
-        if num_coefficients else []
-    if len(intrinsics) != 4 or len(coefficients) != num_coefficients:
-        raise UserError(f"{name}: expected 4 intrinsics and {num_coefficients} distortion "
-                        f"coefficients ({distortion}), got {len(intrinsics)} and "
-                        f"{len(entry.get('distortion_coeffs') or [])}")
-    return model, [float(value) for value in intrinsics + coefficients]
+    intrinsics = _numbers(entry.get("intrinsics"), 4, f"{name}: intrinsics [fu, fv, pu, pv]")
+    given = entry.get("distortion_coeffs", [])
+    coefficients = _numbers(given, len(given) if isinstance(given, list) else -1,
+                            f"{name}: distortion_coeffs")
+    if len(coefficients) < num_coefficients or any(coefficients[num_coefficients:]):
+        raise UserError(f"{name}: distortion_model {distortion} takes {num_coefficients} "
+                        f"distortion_coeffs, got {coefficients}"
+                        + (" (COLMAP's model would drop the others)"
+                           if len(coefficients) > num_coefficients else ""))
+    coefficients = coefficients[:num_coefficients]
+    try:
+        params = check_camera(model, intrinsics + coefficients)
+        if "resolution" in entry:
+            check_camera_fits(model, params, *_numbers(entry["resolution"], 2,
+                                                       f"{name}: resolution"))
+    except UserError as exc:
+        raise UserError(f"{name}: {exc}") from None
+    return model, params
 
 
 def _rigid(name: str, key: str, matrix: list) -> pycolmap.Rigid3d:
@@ -156,8 +180,11 @@ def _rigid(name: str, key: str, matrix: list) -> pycolmap.Rigid3d:
         transform = np.array(matrix, dtype=float)
     except (TypeError, ValueError):
         transform = np.zeros(0)
-    if transform.shape != (4, 4) or not np.allclose(transform[3], [0, 0, 0, 1]):
-        raise UserError(f"{name}: {key} is not a 4x4 rigid transform")
+    if transform.shape != (4, 4) or not np.isfinite(transform).all() or \
+            not np.allclose(transform[3], [0, 0, 0, 1]):
+        raise UserError(f"{name}: {key} is not a 4x4 rigid transform of finite numbers")
+    if np.abs(transform[:3, 3]).max() > MAX_RIG_TRANSLATION:
+        raise UserError(f"{name}: {key} moves by more than {MAX_RIG_TRANSLATION:g}")
     rotation = transform[:3, :3]
     if not np.allclose(rotation.T @ rotation, np.eye(3), atol=_ROTATION_TOLERANCE) or \
             np.linalg.det(rotation) < 0:
@@ -169,8 +196,7 @@ def rig_config(cameras: list[RigCamera], image_prefixes: list[str]) -> list[dict
     """COLMAP's rig configuration (one rig) of `cameras`, the first as the reference."""
     if len(image_prefixes) != len(cameras):
         raise UserError(f"{len(image_prefixes)} image prefixes for {len(cameras)} cameras")
-    if len(set(image_prefixes)) != len(image_prefixes):
-        raise UserError("the image prefixes must differ")
+    _check_prefixes(image_prefixes, "--image_prefix")
     entries = []
     for index, (camera, prefix) in enumerate(zip(cameras, image_prefixes)):
         entry: dict = {"image_prefix": prefix}
@@ -187,15 +213,178 @@ def rig_config(cameras: list[RigCamera], image_prefixes: list[str]) -> list[dict
 
 
 def read_rig_config(path: str | os.PathLike) -> list[pycolmap.RigConfig]:
-    """COLMAP's rig configuration at `path`, as pycolmap reads it; a UserError if it cannot."""
-    path = Path(path)
-    if not path.is_file():
-        raise UserError(f"rig configuration not found: {path}")
+    """COLMAP's rig configuration at `path`, every value checked (`parse_rig_config`); read
+    here, not by pycolmap, whose reader takes a wrong value for another (a 3-number rotation
+    for the identity, a string for a zero quaternion) and overflows its stack on deep nesting."""
+    text = read_bounded_text(Path(path), "rig configuration")
+    if (depth := json_nesting_depth(text)) > RIG_CONFIG_NESTING:
+        raise UserError(f"{path}: not a COLMAP rig configuration (nested {depth} levels deep; "
+                        f"it nests {RIG_CONFIG_NESTING})")
     try:
-        return pycolmap.read_rig_config(str(path))
-    except Exception as exc:  # pycolmap raises ValueError/RuntimeError with COLMAP's check
-        message = str(exc).strip().splitlines()[-1] if str(exc).strip() else type(exc).__name__
-        raise UserError(f"{path}: not a COLMAP rig configuration ({message})") from None
+        content = json.loads(text, parse_constant=_refuse_constant,
+                             object_pairs_hook=_refuse_duplicate_keys)
+    except ValueError as exc:  # json.JSONDecodeError too
+        raise UserError(f"{path}: not JSON ({exc})") from None
+    return parse_rig_config(content, str(path))
+
+
+def read_bounded_text(path: Path, what: str) -> str:
+    """The UTF-8 text of a small input file; a UserError if it is missing, larger than
+    MAX_CONFIG_BYTES (a parser's time and memory grow with it) or not UTF-8 text."""
+    if path.is_dir():
+        raise UserError(f"{what} is a folder, not a file: {path}")
+    if not path.is_file():
+        raise UserError(f"cannot read {what} {path}: no such file")
+    try:
+        with open(path, "rb") as file:
+            data = file.read(MAX_CONFIG_BYTES + 1)
+    except OSError as exc:
+        raise UserError(f"cannot read {path}: {exc.strerror or exc}") from None
+    if len(data) > MAX_CONFIG_BYTES:
+        raise UserError(f"{path}: larger than {MAX_CONFIG_BYTES // 2**20} MiB; a {what} "
+                        "is a few kilobytes")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise UserError(f"{path}: not UTF-8 text (byte {exc.start})") from None
+    if "\x00" in text:
+        raise UserError(f"{path}: not text (it holds NUL bytes)")
+    return text
+
+
+def json_nesting_depth(text: str) -> int:
+    """How deep the arrays and objects of JSON `text` nest (strings skipped), found without
+    parsing it."""
+    depth = deepest = 0
+    for token in re.finditer(r'"(?:[^"\\]|\\.)*"|[\[\]{}]', text):
+        bracket = token.group()
+        if bracket in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif bracket in "]}":
+            depth -= 1
+    return deepest
+
+
+def _refuse_constant(name: str) -> None:
+    raise ValueError(f"{name} is not a number COLMAP reads")
+
+
+def _refuse_duplicate_keys(pairs: list[tuple[str, object]]) -> dict:
+    keys = [key for key, _ in pairs]
+    if len(set(keys)) != len(keys):
+        raise ValueError(f"key {next(k for k in keys if keys.count(k) > 1)!r} given twice")
+    return dict(pairs)
+
+
+def parse_rig_config(content: object, where: str) -> list[pycolmap.RigConfig]:
+    """COLMAP's rig configuration from its parsed JSON `content`: a list of rigs, each
+    {"cameras": [...]} with one reference camera; each other camera placed by a unit
+    quaternion [w, x, y, z] and a translation of 3 numbers; intrinsics, where given, a
+    COLMAP model name and its number of finite params (checked against the images by
+    `check_rig_images`); image prefixes neither repeated nor one within another."""
+    if not isinstance(content, list) or not content:
+        raise UserError(f"{where}: not a COLMAP rig configuration (expected a list of rigs, "
+                        'each {"cameras": [...]})')
+    configs = []
+    for index, rig in enumerate(content):
+        rig_where = f"{where}: rig {index}"
+        if not isinstance(rig, dict) or set(rig) != {"cameras"} or \
+                not isinstance(rig["cameras"], list) or not rig["cameras"]:
+            raise UserError(f'{rig_where}: expected {{"cameras": [...]}} with one camera or more')
+        cameras = [_config_camera(camera, f"{rig_where}, camera {position}")
+                   for position, camera in enumerate(rig["cameras"])]
+        num_refs = sum(camera.ref_sensor for camera in cameras)
+        if num_refs != 1:
+            raise UserError(f'{rig_where}: {num_refs} cameras have "ref_sensor": true; a rig '
+                            "has one reference camera")
+        configs.append(pycolmap.RigConfig(cameras=cameras))
+    _check_prefixes([camera.image_prefix for config in configs for camera in config.cameras],
+                    where)
+    return configs
+
+
+_CAMERA_KEYS = ("image_prefix", "ref_sensor", "cam_from_rig_rotation",
+                "cam_from_rig_translation", "camera_model_name", "camera_params")
+
+
+def _config_camera(entry: object, where: str) -> pycolmap.RigConfigCamera:
+    """One camera of a rig configuration, each value checked."""
+    if not isinstance(entry, dict):
+        raise UserError(f"{where}: expected an object with {', '.join(_CAMERA_KEYS)}")
+    unknown = [key for key in entry if key not in _CAMERA_KEYS]
+    if unknown:
+        raise UserError(f"{where}: unknown key {unknown[0]!r}; a camera has "
+                        f"{', '.join(_CAMERA_KEYS)}")
+    prefix = entry.get("image_prefix")
+    if not isinstance(prefix, str):
+        raise UserError(f"{where}: image_prefix must be a string, got {prefix!r}")
+    where = f"{where} ({prefix!r})"
+    ref_sensor = entry.get("ref_sensor", False)
+    if not isinstance(ref_sensor, bool):
+        raise UserError(f"{where}: ref_sensor must be true or false, got {ref_sensor!r}")
+    camera = pycolmap.RigConfigCamera(image_prefix=prefix, ref_sensor=ref_sensor)
+    posed = [key for key in ("cam_from_rig_rotation", "cam_from_rig_translation") if key in entry]
+    if ref_sensor and posed:
+        raise UserError(f"{where}: the reference camera's frame is the rig's; it takes no "
+                        f"{posed[0]}")
+    if not ref_sensor:
+        if len(posed) != 2:
+            raise UserError(f'{where}: "ref_sensor": false needs cam_from_rig_rotation and '
+                            "cam_from_rig_translation (its place on the rig)")
+        rotation = np.array(_numbers(entry["cam_from_rig_rotation"], 4,
+                                     f"{where}: cam_from_rig_rotation [w, x, y, z]"))
+        norm = np.linalg.norm(rotation)
+        if abs(norm - 1) > QUATERNION_NORM_TOLERANCE:
+            raise UserError(f"{where}: cam_from_rig_rotation {rotation.tolist()} is not a unit "
+                            f"quaternion (norm {norm:g})")
+        translation = _numbers(entry["cam_from_rig_translation"], 3,
+                               f"{where}: cam_from_rig_translation")
+        if max(abs(value) for value in translation) > MAX_RIG_TRANSLATION:
+            raise UserError(f"{where}: cam_from_rig_translation {translation} is beyond "
+                            f"{MAX_RIG_TRANSLATION:g}")
+        w, x, y, z = rotation / norm
+        camera.cam_from_rig = pycolmap.Rigid3d(pycolmap.Rotation3d(np.array([x, y, z, w])),
+                                               translation)
+    given = [key for key in ("camera_model_name", "camera_params") if key in entry]
+    if len(given) == 1:
+        raise UserError(f"{where}: give camera_model_name and camera_params together")
+    if given:
+        model = entry["camera_model_name"]
+        if not isinstance(model, str):
+            raise UserError(f"{where}: camera_model_name must be a string, got {model!r}")
+        params = entry["camera_params"]
+        _numbers(params, len(params) if isinstance(params, list) else -1,
+                 f"{where}: camera_params")
+        try:
+            params = check_camera(model, params)
+        except UserError as exc:
+            raise UserError(f"{where}: {exc}") from None
+        camera.camera = pycolmap.Camera.create_from_model_name(0, model, 1.0, 0, 0)
+        camera.camera.params = params
+    return camera
+
+
+def _numbers(value: object, count: int, what: str) -> list[float]:
+    """`value` as `count` finite numbers (JSON or YAML numbers, not strings or booleans)."""
+    if not isinstance(value, list) or len(value) != count or not all(
+            isinstance(item, (int, float)) and not isinstance(item, bool) for item in value):
+        raise UserError(f"{what} must be a list of {count if count >= 0 else 'some'} "
+                        f"numbers, got {value!r}")
+    if not all(math.isfinite(item) for item in value):
+        raise UserError(f"{what} must be finite, got {value!r}")
+    return [float(item) for item in value]
+
+
+def _check_prefixes(prefixes: list[str], where: str) -> None:
+    """Each image belongs to one camera: no prefix repeated or the start of another (the
+    empty prefix, which holds every image, only for a rig of one camera)."""
+    for index, prefix in enumerate(prefixes):
+        for other in prefixes[index + 1:]:
+            if other.startswith(prefix) or prefix.startswith(other):
+                same = "is given twice" if other == prefix else f"and {other!r} overlap"
+                raise UserError(f"{where}: image prefix {prefix!r} {same}; each image must "
+                                "be under one camera's prefix")
 
 
 def check_rig_images(configs: list[pycolmap.RigConfig], names: list[str]) -> None:
@@ -214,25 +403,13 @@ def check_rig_images(configs: list[pycolmap.RigConfig], names: list[str]) -> Non
 
 def apply_rig_config(database_path: str | os.PathLike,
                      configs: list[pycolmap.RigConfig]) -> None:
-    """Give each rig camera's images a camera of their own, then write the rigs and frames
-    (`pycolmap.apply_rig_config`, which also sets each camera's model and params from the
-    configuration). COLMAP needs the first step done at extraction (one camera per folder);
-    here any prefix works."""
+    """Write the rigs and frames of `configs` into a database whose images under each
+    camera's prefix share a camera of their own (as `extract_features` with `rig_cameras`
+    imports them), replacing the trivial ones the import wrote. Rigs of one camera each are
+    those trivial ones already (and COLMAP's apply_rig_config refuses the empty prefix)."""
+    if all(len(config.cameras) == 1 for config in configs):
+        return
     with pycolmap.Database.open(str(database_path)) as db:
-        db.clear_frames()  # they name each image's camera; apply_rig_config rewrites them
+        db.clear_frames()
         db.clear_rigs()
-        images = db.read_all_images()
-        claimed: set[int] = set()
-        for config in configs:
-            for camera in config.cameras:
-                group = [image for image in images if image.name.startswith(camera.image_prefix)]
-                camera_id = group[0].camera_id
-                if camera_id in claimed or any(image.camera_id != camera_id for image in group):
-                    camera_id = db.write_camera(db.read_camera(camera_id))
-                claimed.add(camera_id)
-                for image in group:
-                    if image.camera_id != camera_id:
-                        image.camera_id = camera_id
-                        db.update_image(image)
         pycolmap.apply_rig_config(configs, db)
-

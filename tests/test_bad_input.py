@@ -14,6 +14,7 @@ To add a case, write a builder under `@case(...)`: it makes the inputs in `env.i
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import resource
@@ -139,6 +140,17 @@ class Assets:
 
         main(self.ring[0], self.root / "workspace", "PINHOLE", ",".join(map(str, RING_PARAMS)), seed=0)
         return self.root / "workspace"
+
+    @cached_property
+    def rig_database(self) -> Path:
+        """COLMAP's generator: one rig of 2 cameras 0.1 apart (the first the reference),
+        4 frames, 0.5 px noise."""
+        from colmap_ext.synthetic.pycolmap_generator import write_pycolmap_dataset
+
+        path = self.root / "rig" / "database.db"
+        path.parent.mkdir()
+        write_pycolmap_dataset(path, None, 0, 8, 0.5, 300, 2, num_rigs=1, rig_baseline=0.1)
+        return path
 
     @cached_property
     def colmap38(self) -> tuple[Path, Path, str]:
@@ -1237,6 +1249,290 @@ def _(env):
     existing = env.inputs / "rig.json"
     existing.write_text("[]\n")  # an input: hashed before and after
     return _kalibr(env, CAMCHAIN, existing)
+
+
+# ---- rig inputs (issue 45): every value of a rig configuration, camchain file and rig
+# database checked before any costly step, with a message naming it
+
+
+RIG_PINHOLE = {"camera_model_name": "PINHOLE", "camera_params": [6.0, 6.0, 4.0, 4.0]}
+
+
+def _rig_config(**right: object) -> list[dict]:
+    """Two PINHOLE cameras on left/ and right/, the second placed 0.1 to the side; `right`
+    changes its entry (a value None removes the key)."""
+    entry = {"image_prefix": "right/", "cam_from_rig_rotation": [1.0, 0.0, 0.0, 0.0],
+             "cam_from_rig_translation": [0.1, 0.0, 0.0], **RIG_PINHOLE, **right}
+    return [{"cameras": [{"image_prefix": "left/", "ref_sensor": True, **RIG_PINHOLE},
+                         {key: value for key, value in entry.items() if value is not None}]}]
+
+
+def _rig(env, config: list | str, *extra: str) -> list[str]:
+    """reconstruct --rig_config on left/N.png and right/N.png (8x8); `config`: the JSON's
+    content, or its text."""
+    for side in ("left", "right"):
+        for index in range(3):
+            write_png(env.inputs / "rig" / side / f"{index}.png")
+    path = env.inputs / "rig.json"
+    path.write_text(config if isinstance(config, str) else json.dumps(config))
+    return ["reconstruct", "--image_path", str(env.inputs / "rig"), "--workspace_path",
+            str(env.out), "--rig_config", str(path), *extra]
+
+
+DEEP_JSON = "[" * 100_000 + "]" * 100_000
+
+
+@case("rig_json_nested_100000_deep", "nested 100000 levels deep", command="reconstruct")
+def _(env):
+    """Issue 45, defect 5: pycolmap's reader overflowed its stack (SIGSEGV)."""
+    return _rig(env, DEEP_JSON)
+
+
+@case("rig_json_too_large", "larger than 1 MiB", command="reconstruct")
+def _(env):
+    return _rig(env, json.dumps(_rig_config()) + " " * 2**20)
+
+
+@case("rig_ref_sensor_false_without_pose", '"ref_sensor": false needs cam_from_rig_rotation',
+      command="reconstruct")
+def _(env):
+    """Issue 45, defect 6: an AttributeError in initial_pair.py after extraction."""
+    return _rig(env, _rig_config(ref_sensor=False, cam_from_rig_rotation=None,
+                                 cam_from_rig_translation=None))
+
+
+@case("rig_lowercase_camera_model", "unknown camera model 'pinhole'", command="reconstruct")
+def _(env):
+    """Issue 45, defect 6: a ValueError in matching.py after extraction."""
+    return _rig(env, _rig_config(camera_model_name="pinhole"))
+
+
+@case("rig_wrong_number_of_camera_params", "camera model PINHOLE takes 4 params",
+      command="reconstruct")
+def _(env):
+    return _rig(env, _rig_config(camera_params=[6.0, 6.0, 4.0]))
+
+
+@case("rig_zero_quaternion", "is not a unit quaternion (norm 0)", command="reconstruct")
+def _(env):
+    """Issue 45, defect 8: written into the model's rig."""
+    return _rig(env, _rig_config(cam_from_rig_rotation=[0, 0, 0, 0]))
+
+
+@case("rig_rotation_of_3_numbers", "cam_from_rig_rotation [w, x, y, z] must be a list of 4",
+      command="reconstruct")
+def _(env):
+    """Issue 45, defect 8: became the identity."""
+    return _rig(env, _rig_config(cam_from_rig_rotation=[0.0, 0.0, 1.0]))
+
+
+@case("rig_rotation_a_string", "cam_from_rig_rotation [w, x, y, z] must be a list of 4",
+      command="reconstruct")
+def _(env):
+    return _rig(env, _rig_config(cam_from_rig_rotation="identity"))
+
+
+@case("rig_translation_of_2_numbers", "cam_from_rig_translation must be a list of 3",
+      command="reconstruct")
+def _(env):
+    """Issue 45, defect 8: became zero."""
+    return _rig(env, _rig_config(cam_from_rig_translation=[0.1, 0.0]))
+
+
+@case("rig_principal_point_outside", "principal point (100000, 4) is outside the 8x8 images",
+      command="reconstruct")
+def _(env):
+    """Issue 45, defect 9: accepted, where --camera_params is refused."""
+    return _rig(env, _rig_config(camera_params=[6.0, 6.0, 1e5, 4.0]))
+
+
+@case("rig_focal_length_1e300", "is no lens's", command="reconstruct")
+def _(env):
+    return _rig(env, _rig_config(camera_params=[1e300, 1e300, 4.0, 4.0]))
+
+
+@case("rig_focal_length_negative", "focal lengths must be positive", command="reconstruct")
+def _(env):
+    """Issue 45, defect 9: refused after extraction, naming a deleted temporary path."""
+    return _rig(env, _rig_config(camera_params=[-6.0, -6.0, 4.0, 4.0]))
+
+
+@case("rig_with_camera_flags", "not both", command="reconstruct")
+def _(env):
+    """Issue 45, defect 11: the flags were ignored, and the summary recorded them."""
+    return _rig(env, _rig_config(), "--camera_model", "OPENCV_FISHEYE",
+                "--camera_params", "6,6,4,4,0,0,0,0")
+
+
+def _equirectangular(params: list[float]) -> Callable[[Env], list[str]]:
+    return lambda env: _rig(env, _rig_config(camera_model_name="EQUIRECTANGULAR",
+                                             camera_params=params))
+
+
+for _params, _message in (([0.0, 0.0], "camera params must be positive"),
+                          ([-8.0, -8.0], "camera params must be positive"),
+                          ([1e12, 1e12], "are not the images' size 8x8")):
+    # Issue 45, defect 15: "no model could be reconstructed" after extraction.
+    case(f"rig_equirectangular_params_{_params[0]:g}", _message,
+         command="reconstruct")(_equirectangular(_params))
+
+
+@case("rig_overlapping_prefixes", "image prefix 'left/' and 'left/a' overlap",
+      command="reconstruct")
+def _(env):
+    return _rig(env, _rig_config(image_prefix="left/a"))
+
+
+@case("evaluate_rig_json_nested_100000_deep", "nested 100000 levels deep", command="evaluate")
+def _(env):
+    """Issue 45, defect 5."""
+    (env.inputs / "rig.json").write_text(DEEP_JSON)
+    return env.evaluate(None, None, "--rig_config", str(env.inputs / "rig.json"))
+
+
+@case("evaluate_rig_prefixes_match_nothing", "no image of the model is under the rig "
+      "configuration's image prefixes", command="evaluate")
+def _(env):
+    """Issue 45, defect 13: evaluated without a word about the rig."""
+    (env.inputs / "rig.json").write_text(json.dumps(_rig_config()))
+    return env.evaluate(None, None, "--rig_config", str(env.inputs / "rig.json"))
+
+
+@case("gt_translation_1e300", "a number beyond 1e+12", command="evaluate")
+def _(env):
+    """Issue 45, defect 15: "first two ground-truth camera centres coincide", with NumPy
+    overflow warnings."""
+    return env.evaluate(None, _edited_truth(env, lambda lines: lines[:1] + [
+        " ".join(line.split()[:-3] + ["1e300", "0", "0"]) for line in lines[1:]]))
+
+
+def _rig_database(env, *statements: tuple | str) -> Path:
+    """A copy of the rig database (one rig of 2 cameras, 4 frames), SQL run on it."""
+    return edit_database(env.copy(env.assets.rig_database), *statements)
+
+
+def _sensor_from_rig(values: list[float] | None) -> tuple:
+    blob = None if values is None else np.array(values, np.float64).tobytes()
+    return ("UPDATE rig_sensors SET sensor_from_rig = ?", (blob,))
+
+
+@case("db_rig_positive_control", "Registered 8 images in 1 model", code=0)
+def _(env):
+    return env.mapper(_rig_database(env), env.inputs, None, "--seed", "0")
+
+
+@case("db_rig_sensor_from_rig_null", "camera 2's sensor_from_rig is NULL")
+def _(env):
+    """Issue 45, defect 6: a traceback."""
+    return env.mapper(_rig_database(env, _sensor_from_rig(None)), env.inputs)
+
+
+@case("db_rig_zero_quaternion", "camera 2's sensor_from_rig is [0, 0, 0, 0, 0.1, 0, 0]")
+def _(env):
+    """Issue 45, defect 8: mapped 4 of 12 images."""
+    return env.mapper(_rig_database(env, _sensor_from_rig([0, 0, 0, 0, 0.1, 0, 0])), env.inputs)
+
+
+@case("db_rig_nan_sensor_from_rig", "camera 2's sensor_from_rig is [nan")
+def _(env):
+    """Issue 45, defect 15: "no model could be reconstructed" after 10 s."""
+    return env.mapper(_rig_database(env, _sensor_from_rig([np.nan] * 7)), env.inputs)
+
+
+@case("db_frame_with_two_images_of_one_camera", "of one camera (1); a frame holds one image "
+      "per camera")
+def _(env):
+    """Issue 45, defect 10: both images got one pose."""
+    return env.mapper(_rig_database(
+        env, "UPDATE images SET camera_id = 1", "UPDATE frame_data SET sensor_id = 1"), env.inputs)
+
+
+@case("db_constant_rig_not_in_the_database", "--Mapper.constant_rig_list_path: no rig with id 7")
+def _(env):
+    """Issue 45, defect 13: ignored without a word."""
+    (env.inputs / "rigs.txt").write_text("7\n")
+    return env.mapper(_rig_database(env), env.inputs, None, "--Mapper.constant_rig_list_path",
+                      str(env.inputs / "rigs.txt"))
+
+
+@case("db_equirectangular_size_not_its_params", "is 1 x 1 with params 1024, 512")
+def _(env):
+    """Issue 45, defect 12: accepted, its reprojection errors wrong."""
+    import pycolmap
+
+    return env.mapper(edit_database(env.small_db(), (
+        "UPDATE cameras SET model = ?, width = 1, height = 1, params = ?",
+        (int(pycolmap.CameraModelId.EQUIRECTANGULAR), np.array([1024.0, 512.0]).tobytes()))))
+
+
+@case("db_keypoints_outside_the_image", "are outside its camera's")
+def _(env):
+    """Issue 45, defect 12: accepted."""
+    return env.mapper(edit_blob(env.small_db(), "keypoints", "image_id", _set_first(1e6)))
+
+
+def _kalibr_camera(**changes: object) -> str:
+    """CAMCHAIN with cam1's lines changed (key: YAML text of its value)."""
+    lines = CAMCHAIN.splitlines()
+    start = lines.index("cam1:")
+    for key, value in changes.items():
+        index = next(i for i in range(start, len(lines)) if lines[i].startswith(f"  {key}:"))
+        lines[index] = f"  {key}: {value}"
+    return "\n".join(lines) + "\n"
+
+
+for _id, _changes, _message in (
+        # Issue 45, defect 6: tracebacks
+        ("kalibr_intrinsics_not_numbers", {"intrinsics": "[a, b, c, d]"},
+         "intrinsics [fu, fv, pu, pv] must be a list of 4 numbers"),
+        ("kalibr_distortion_model_a_list", {"distortion_model": "[equidistant]"},
+         "distortion_model ['equidistant'] is not supported"),
+        # Issue 45, defect 9: NaN and Infinity written into rig.json; focal lengths of 0 taken
+        ("kalibr_intrinsics_nan", {"intrinsics": "[.nan, 350.0, 360.0, 270.0]"}, "must be finite"),
+        ("kalibr_intrinsics_infinite", {"intrinsics": "[.inf, 350.0, 360.0, 270.0]"},
+         "must be finite"),
+        ("kalibr_focal_length_zero", {"intrinsics": "[0.0, 0.0, 360.0, 270.0]"},
+         "focal lengths must be positive"),
+        ("kalibr_focal_length_negative", {"intrinsics": "[-350.0, 350.0, 360.0, 270.0]"},
+         "focal lengths must be positive"),
+        ("kalibr_principal_point_outside", {"intrinsics": "[350.0, 350.0, 3600.0, 270.0]"},
+         "is outside the 720x540 images"),
+        # Issue 45, defect 18: dropped without a word
+        ("kalibr_extra_distortion_coefficients",
+         {"distortion_coeffs": "[0.01, -0.002, 0.0005, 0.0, 0.03]"},
+         "COLMAP's model would drop the others")):
+    case(_id, _message, command="rig_config_from_kalibr")(
+        lambda env, changes=_changes: _kalibr(env, _kalibr_camera(**changes)))
+
+
+@case("kalibr_not_utf8", "not UTF-8 text", command="rig_config_from_kalibr")
+def _(env):
+    """Issue 45, defect 6: a UnicodeDecodeError traceback."""
+    args = _kalibr(env, "")
+    (env.inputs / "camchain.yaml").write_bytes(CAMCHAIN.encode("utf-16"))
+    return args
+
+
+@case("kalibr_binary", "not text", command="rig_config_from_kalibr")
+def _(env):
+    args = _kalibr(env, "")
+    (env.inputs / "camchain.yaml").write_bytes(b"cam0:\x00\x01\x02" * 100)
+    return args
+
+
+@case("kalibr_16_megabytes", "larger than 1 MiB", command="rig_config_from_kalibr")
+def _(env):
+    """Issue 45, defect 18: 40 s and 1.2 GB to read."""
+    return _kalibr(env, CAMCHAIN + "".join(f"# {index:09d}\n" for index in range(2**20)))
+
+
+for _id, _prefixes, _message in (
+        ("kalibr_nested_prefixes", ["cam/", "cam/1/"], "image prefix 'cam/' and 'cam/1/' overlap"),
+        ("kalibr_empty_prefix", ["", "cam1/"], "image prefix '' and 'cam1/' overlap"),
+        ("kalibr_same_prefix_twice", ["cam/", "cam/"], "image prefix 'cam/' is given twice")):
+    # Issue 45, defect 18: written, and refused only by reconstruct.
+    case(_id, _message, command="rig_config_from_kalibr")(
+        lambda env, prefixes=_prefixes: _kalibr(env, CAMCHAIN, None, "--image_prefix", *prefixes))
 
 
 # ---- demo

@@ -101,7 +101,8 @@ def test_a_camchain_without_imu_is_chained_from_its_first_camera(tmp_path: Path)
 @pytest.mark.parametrize(("change", "message"), [
     ({"camera_model": "omni"}, "camera_model 'omni' is not supported"),
     ({"distortion_model": "fov"}, "distortion_model 'fov' is not supported"),
-    ({"intrinsics": [400.0, 400.0, 320.0]}, "expected 4 intrinsics"),
+    ({"intrinsics": [400.0, 400.0, 320.0]},
+     r"intrinsics \[fu, fv, pu, pv\] must be a list of 4 numbers"),
     ({"T_cam_imu": [[2.0, 0, 0, 0], [0, 1.0, 0, 0], [0, 0, 1.0, 0], [0, 0, 0, 1.0]]},
      "T_cam_imu does not hold a rotation"),
 ])
@@ -254,16 +255,25 @@ def test_reconstruct_with_a_rig_config_writes_the_rig_and_its_frames(
     assert summary["models"][0]["num_registered"] >= 4
 
 
+PINHOLE = {"camera_model_name": "PINHOLE", "camera_params": list(CAMERA.params)}
+
+
 @pytest.mark.parametrize(("config", "message"), [
-    ([{"cameras": [{"image_prefix": "left/", "ref_sensor": True}]}],
+    ([{"cameras": [{"image_prefix": "left/", "ref_sensor": True, **PINHOLE}]}],
      "image right/frame0.png is under 0 of the rig configuration's image prefixes"),
-    ([{"cameras": [{"image_prefix": "left/", "ref_sensor": True},
+    ([{"cameras": [{"image_prefix": "left/", "ref_sensor": True, **PINHOLE},
                    {"image_prefix": "right/", "cam_from_rig_rotation": [1, 0, 0, 0],
-                    "cam_from_rig_translation": [1, 0, 0]},
+                    "cam_from_rig_translation": [1, 0, 0], **PINHOLE},
                    {"image_prefix": "top/", "cam_from_rig_rotation": [1, 0, 0, 0],
-                    "cam_from_rig_translation": [0, 1, 0]}]}],
+                    "cam_from_rig_translation": [0, 1, 0], **PINHOLE}]}],
      "no image under the rig configuration's image prefix 'top/'"),
-    ([{"cameras": [{"image_prefix": "left/"}]}], "not a COLMAP rig configuration"),
+    ([{"cameras": [{"image_prefix": "left/", **PINHOLE}]}],
+     '"ref_sensor": false needs cam_from_rig_rotation'),
+    ([{"cameras": [{"image_prefix": "left/", "ref_sensor": True, **PINHOLE},
+                   {"image_prefix": "right/", "cam_from_rig_rotation": [1, 0, 0, 0],
+                    "cam_from_rig_translation": [1, 0, 0], "camera_model_name": "PINHOLE",
+                    "camera_params": [300.0, 300.0, 1e5, 120.0]}]}],
+     r"principal point \(100000, 120\) is outside the 320x240 images"),
 ])
 def test_reconstruct_checks_the_rig_config_before_any_work(
         rendered_rig, tmp_path: Path, config: list, message: str) -> None:
@@ -271,19 +281,75 @@ def test_reconstruct_checks_the_rig_config_before_any_work(
     path = tmp_path / "rig.json"
     path.write_text(json.dumps(config))
     with pytest.raises(UserError, match=message):
-        reconstruct.main(images, tmp_path / "ws", "PINHOLE", "300,300,160,120",
-                         rig_config=str(path))
+        reconstruct.main(images, tmp_path / "ws", rig_config=str(path))
     assert not (tmp_path / "ws" / "database.db").exists()
 
 
-def test_reconstruct_needs_intrinsics_from_the_flags_or_the_rig_config(
-        rendered_rig, tmp_path: Path) -> None:
-    images, _, _ = rendered_rig
+@pytest.mark.parametrize(("flags", "message"), [
+    ({}, "give --camera_model and --camera_params, or a --rig_config with camera_model_name"),
+    ({"camera_model": "PINHOLE", "camera_params": "300,300,160,120"}, "not both"),
+])
+def test_reconstruct_needs_intrinsics_from_the_flags_or_else_the_rig_config(
+        rendered_rig, tmp_path: Path, flags: dict, message: str) -> None:
+    images, config, _ = rendered_rig
+    entries = json.loads(config.read_text())
+    if not flags:
+        del entries[0]["cameras"][1]["camera_model_name"], entries[0]["cameras"][1]["camera_params"]
     path = tmp_path / "rig.json"
-    path.write_text(json.dumps([{"cameras": [{"image_prefix": "left/", "ref_sensor": True},
-                                             {"image_prefix": "right/", "ref_sensor": False}]}]))
-    with pytest.raises(UserError, match="give --camera_model and --camera_params, or"):
-        reconstruct.main(images, tmp_path / "ws", rig_config=str(path))
+    path.write_text(json.dumps(entries))
+    with pytest.raises(UserError, match=message):
+        reconstruct.main(images, tmp_path / "ws", rig_config=str(path), **flags)
+
+
+def test_reconstruct_maps_a_rig_whose_cameras_have_two_image_sizes(tmp_path: Path) -> None:
+    """Issue 45, defect 14: "images sharing one camera must have one size" refused a rig
+    whose second camera is 240x180; each prefix's images now get a camera of their size."""
+    small = pycolmap.Camera(camera_id=1, model="PINHOLE", width=240, height=180,
+                            params=[225.0, 225.0, 120.0, 90.0])
+    ring = ring_scene(num_images=6, seed=0, camera=CAMERA)
+    right_from_rig = pycolmap.Rigid3d(pycolmap.Rotation3d(np.radians([0.0, -15.0, 0.0])),
+                                      [-0.4, 0.0, 0.0])
+    for camera, side, cam_from_rig in ((CAMERA, "left", pycolmap.Rigid3d()),
+                                       (small, "right", right_from_rig)):
+        render_images(Scene(camera, [cam_from_rig * pose for pose in ring.cams_from_world],
+                            [f"{side}/frame{index}.png" for index in range(6)], ring.quads),
+                      tmp_path / "images", supersample=1)
+    x, y, z, w = right_from_rig.rotation.quat
+    config = [{"cameras": [
+        {"image_prefix": "left/", "ref_sensor": True, **PINHOLE},
+        {"image_prefix": "right/", "cam_from_rig_rotation": [w, x, y, z],
+         "cam_from_rig_translation": right_from_rig.translation.tolist(),
+         "camera_model_name": "PINHOLE", "camera_params": list(small.params)}]}]
+    (tmp_path / "rig.json").write_text(json.dumps(config))
+
+    summary = reconstruct.main(tmp_path / "images", tmp_path / "ws",
+                               rig_config=str(tmp_path / "rig.json"), seed=0)
+
+    model = pycolmap.Reconstruction(tmp_path / "ws" / "sparse" / "0")
+    sizes = {image.name.split("/")[0]: (image.camera.width, image.camera.height,
+                                        list(image.camera.params))
+             for image in model.images.values() if image.has_pose}
+    assert sizes == {"left": (320, 240, list(CAMERA.params)),
+                     "right": (240, 180, list(small.params))}
+    assert summary["models"][0]["num_registered"] >= 4
+    assert summary["inputs"]["rig_cameras"]["right/"]["camera_params"] == list(small.params)
+    assert "camera_model" not in summary["inputs"]
+
+
+def test_reconstruct_maps_a_rig_of_one_camera_under_the_empty_prefix(
+        rendered_rig, tmp_path: Path) -> None:
+    """Issue 45, defect 6: a one-camera rig with image_prefix "" ended in a traceback;
+    every image is then a frame of its own."""
+    images, _, _ = rendered_rig
+    (tmp_path / "rig.json").write_text(json.dumps(
+        [{"cameras": [{"image_prefix": "", "ref_sensor": True, **PINHOLE}]}]))
+
+    summary = reconstruct.main(images, tmp_path / "ws", rig_config=str(tmp_path / "rig.json"),
+                               seed=0)
+
+    assert summary["models"][0]["num_registered"] >= 4
+    with pycolmap.Database.open(str(tmp_path / "ws" / "database.db")) as db:
+        assert len(db.read_all_cameras()) == 1 and len(db.read_all_frames()) == 12
 
 
 def generated_rigs(database_path: Path, num_rigs: int, num_cameras: int, num_frames: int,

@@ -23,7 +23,7 @@ from colmap_ext.mapper.descriptors import NearestDescriptors
 from colmap_ext.mapper.initial_pair import choose_initial_pair, initialize
 from colmap_ext.mapper.merging import find_similarity, join
 from colmap_ext.mapper.model import Model
-from colmap_ext.mapper.options import MapperOptions
+from colmap_ext.mapper.options import BundleAdjustmentOptions, MapperOptions
 from colmap_ext.mapper.filtering import error_limit, filter_images, filter_points
 from colmap_ext.mapper.refinement import (MatchGraphs, ModelAdjuster, refine_joined,
                                           retriangulate, triangulate_images)
@@ -445,6 +445,7 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
         start = time.perf_counter()
         with timer("read database"):
             db = read_database(database_path)
+        check_listed_ids(db, options.bundle_adjustment)
         extract_colors = options.extract_colors and colours_readable(db, image_path)
         reconstructions = reconstruct(db, options, image_names, timer, progress, existing)
         if not reconstructions:
@@ -452,6 +453,18 @@ def run(database_path: str | Path, image_path: str | Path, output_path: str | Pa
         write_result(reconstructions, new_output, image_path, extract_colors, output_type, timer,
                      start)
     return dict(enumerate(reconstructions))
+
+
+def check_listed_ids(db: DatabaseContents, ba: BundleAdjustmentOptions) -> None:
+    """The rigs and cameras that --Mapper.constant_rig_list_path and
+    --Mapper.constant_camera_list_path name are in the database."""
+    for flag, ids, known in (("constant_rig_list_path", ba.constant_rig_ids, db.rigs),
+                             ("constant_camera_list_path", ba.constant_camera_ids, db.cameras)):
+        unknown = [value for value in ids if value not in known]
+        if unknown:
+            kind = flag.split("_")[1]
+            raise UserError(f"--Mapper.{flag}: no {kind} with id {unknown[0]} in the database "
+                            f"(its {kind}s: {', '.join(map(str, sorted(known))) or 'none'})")
 
 
 def write_result(reconstructions: list[pycolmap.Reconstruction], output: Path,
