@@ -171,7 +171,7 @@ def copy_database(path: Path, copy: Path) -> None:
 _MODELS = {int(model_id): pycolmap.Camera.create_from_model_id(0, model_id, 1.0, 1, 1)
            for name, model_id in pycolmap.CameraModelId.__members__.items() if name != "INVALID"}
 # COLMAP's camera model ids -> number of parameters, and the focal lengths' indices.
-_NUM_PARAMS = {model_id: len(camera.params) for model_id, camera in _MODELS.items()}
+NUM_PARAMS = {model_id: len(camera.params) for model_id, camera in _MODELS.items()}
 _FOCAL_LENGTH_IDXS = {model_id: camera.focal_length_idxs() for model_id, camera in _MODELS.items()}
 # Bytes of the two-view geometry blobs that hold one fixed-size array each (doubles):
 # F, E, H 3x3, qvec 4, tvec 3. Empty or NULL: not estimated.
@@ -206,13 +206,13 @@ def _check_tables(copy: Path, path: Path) -> None:
 
 def _check_camera(camera_id: int, model_id: int, width: int, height: int, params: bytes | None,
                   path: Path) -> None:
-    if model_id not in _NUM_PARAMS:
+    if model_id not in NUM_PARAMS:
         raise UserError(f"camera {camera_id} in {path} has model id {model_id}, which is no "
                         "COLMAP camera model")
     num_params = len(params or b"") / 8
-    if num_params != _NUM_PARAMS[model_id]:
+    if num_params != NUM_PARAMS[model_id]:
         raise UserError(f"camera {camera_id} in {path} has {num_params:g} params; its model "
-                        f"{pycolmap.CameraModelId(model_id).name} takes {_NUM_PARAMS[model_id]}")
+                        f"{pycolmap.CameraModelId(model_id).name} takes {NUM_PARAMS[model_id]}")
     values = np.frombuffer(params, np.float64)
     if not np.isfinite(values).all():
         raise UserError(f"camera {camera_id} in {path} has no valid parameters "

@@ -14,6 +14,7 @@ To add a case, write a builder under `@case(...)`: it makes the inputs in `env.i
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import re
 import resource
@@ -770,6 +771,8 @@ def _replaced(env, result):
 def _(env):
     shutil.copytree(env.assets.model, env.out)
     shutil.copytree(env.out / "0", env.out / "1")  # a second model of the earlier run
+    summary = env.out / "mapper_summary.json"
+    summary.write_text(json.dumps({**json.loads(summary.read_text()), "num_models": 2}))
     return env.mapper(env.small_db(), None, None, "--seed", "5", "--overwrite")
 
 
@@ -1345,6 +1348,110 @@ def _(env):
 def _(env):
     database, images, _ = env.assets.big
     return _compare_over_a_comparison(env, database, images)
+
+
+# ---- Issue 45: what --overwrite replaces, damaged model files, the database's copy,
+# interrupts while loading, leftovers of killed runs
+
+
+def _all_kept(names: list[str]) -> Callable:
+    def after(env, result):
+        assert sorted(p.name for p in env.out.iterdir()) == names, "an entry was removed"
+    return after
+
+
+@case("reconstruct_overwrite_keeps_the_users_masks", "Model 0:", code=0, command="reconstruct",
+      after=_all_kept(["database.db", "masks", "reconstruct_summary.json", "sparse"]))
+def _(env):
+    """Issue 45, defect 1: WS/masks, this run's --mask_path, was taken for our own output
+    (it holds PNG files) and deleted."""
+    import cv2
+
+    args = _reconstruct_over_a_workspace(env)
+    env.protected.remove(env.out)  # the database and sparse/ are replaced, the masks kept
+    masks = env.out / "masks"
+    masks.mkdir()
+    for image in sorted(env.assets.ring[0].iterdir()):
+        assert cv2.imwrite(str(masks / f"{image.name}.png"), np.full((240, 320), 255, np.uint8))
+    env.protected.append(masks)
+    return [*args, "--mask_path", str(masks)]
+
+
+@case("evaluate_output_exists_is_kept", "report.json exists; pass --overwrite", command="evaluate")
+def _(env):
+    """Issue 45, defect 2: --output replaced any file."""
+    (env.inputs / "report.json").write_text('{"an earlier": "report"}\n')
+    return env.evaluate(None, None, "--output", str(env.inputs / "report.json"))
+
+
+@case("evaluate_plot_keeps_the_users_scene_figure", "fig_scene.png exists; pass --overwrite",
+      command="evaluate")
+def _(env):
+    """Issue 45, defect 2: --plot fig.png replaced the user's fig_scene.png."""
+    write_png(env.inputs / "fig_scene.png")
+    return env.evaluate(None, None, "--plot", str(env.inputs / "fig.png"))
+
+
+@case("evaluate_output_is_the_ground_truth", "is an input of this run", command="evaluate")
+def _(env):
+    """Issue 45, defect 2: `--output GT` turned the ground truth into JSON, --overwrite or not."""
+    truth = env.copy(env.assets.ground_truth)
+    return env.evaluate(None, truth, "--output", str(truth), "--overwrite")
+
+
+@case("overwrite_keeps_model_folders_it_did_not_write", "Registered 6 images", code=0,
+      after=_all_kept(["0", "7", "mapper_summary.json"]))
+def _(env):
+    """Issue 45, defect 3: --overwrite removed OUT/7, a model the earlier run (whose
+    summary records one model, OUT/0) did not write."""
+    shutil.copytree(env.assets.model, env.out)
+    shutil.copytree(env.out / "0", env.out / "7")
+    env.protected.append(env.out / "7")
+    return env.mapper(env.small_db(), None, None, "--seed", "0", "--overwrite")
+
+
+# An address-space limit for runs that read damaged models: pycolmap's unbounded
+# allocation (issue 45, defect 4: 16.5 GB) ends in bad_alloc instead of taking the machine.
+MEMORY_LIMIT_BYTES = 8 * 2**30
+
+
+def _run_with_memory_limit(env, args):
+    def preexec() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT_BYTES, MEMORY_LIMIT_BYTES))
+    return run_cli(env, args, preexec_fn=preexec)
+
+
+def _model_with(env, name: str, edit: Callable[[bytes], bytes]) -> Path:
+    """A copy of the small scene's model with its file `name` edited."""
+    model = env.copy(env.assets.model / "0", "model")
+    (model / name).write_bytes(edit((model / name).read_bytes()))
+    return model
+
+
+for _name, _cut in (("to_0_bytes", lambda data: b""), ("to_4096_bytes", lambda data: data[:4096]),
+                   ("by_one_byte", lambda data: data[:-1])):
+    @case(f"evaluate_points3D_truncated_{_name}", "points3D.bin is truncated", command="evaluate",
+          run=_run_with_memory_limit)
+    def _(env, cut=_cut):
+        """Issue 45, defect 4: a points3D.bin cut short (a full disk) made pycolmap allocate
+        without bound."""
+        return env.evaluate(_model_with(env, "points3D.bin", cut))
+
+
+@case("mapper_input_model_truncated", "points3D.bin is truncated", run=_run_with_memory_limit)
+def _(env):
+    """Issue 45, defect 4, through `mapper --input_path`."""
+    model = _model_with(env, "points3D.bin", lambda data: data[:4096])
+    return env.mapper(env.small_db(), None, None, "--input_path", str(model))
+
+
+@case("evaluate_images_bin_image_without_frame", "images.bin is corrupt: its image 999 is in no frame",
+      command="evaluate", run=_run_with_memory_limit)
+def _(env):
+    """Issue 45, defects 4 and 15: "unordered_map::at" for an images.bin whose image is in
+    no frame."""
+    return env.evaluate(_model_with(
+        env, "images.bin", lambda data: data[:8] + (999).to_bytes(4, "little") + data[12:]))
 
 
 # ---- Ray and hierarchical_mapper
