@@ -1454,6 +1454,66 @@ def _(env):
         env, "images.bin", lambda data: data[:8] + (999).to_bytes(4, "little") + data[12:]))
 
 
+# A writer that changes the cameras in a transaction large enough to spill to the database
+# file (a rollback journal beside it), prints "spilled", then dies without committing
+# (argv[2] "die") or waits to be killed.
+UNCOMMITTED_WRITER = """
+import os, sqlite3, sys, time
+import numpy as np
+conn = sqlite3.connect(sys.argv[1], isolation_level=None)
+conn.execute("PRAGMA cache_size = 1")
+conn.execute("BEGIN")
+conn.execute("UPDATE cameras SET params = ?", (np.full(8, np.nan).tobytes(),))
+conn.execute("UPDATE descriptors SET data = data || x'00'")
+print("spilled", flush=True)
+if sys.argv[2] == "die":
+    os._exit(0)
+time.sleep(600)
+"""
+
+
+def _uncommitted_write(database: Path, mode: str) -> subprocess.Popen:
+    """The writer on `database`, turned into a rollback-journal database (COLMAP leaves
+    them in WAL mode, whose uncommitted frames stay in the log), once it has spilled."""
+    edit_database(database, "PRAGMA journal_mode = DELETE")
+    writer = subprocess.Popen([sys.executable, "-c", UNCOMMITTED_WRITER, str(database), mode],
+                              stdout=subprocess.PIPE, text=True)
+    assert writer.stdout.readline().strip() == "spilled"
+    with closing(sqlite3.connect(f"{database.as_uri()}?immutable=1", uri=True)) as conn:
+        params = np.frombuffer(conn.execute("SELECT params FROM cameras").fetchone()[0])
+    assert np.isnan(params).all(), "the uncommitted parameters did not reach the file"
+    assert Path(f"{database}-journal").stat().st_size > 0
+    return writer
+
+
+@case("db_hot_journal_is_rolled_back", "Registered 6 images", code=0)
+def _(env):
+    """Issue 45, defect 7: the pages of a transaction whose writer died (a hot journal
+    beside the database) were read as the database: NaN parameters, or "malformed". Its
+    committed content maps; the database and its journal stay as they are."""
+    database = env.small_db()
+    _uncommitted_write(database, "die").wait()
+    return env.mapper(database, None, None, "--seed", "0")
+
+
+def _run_beside_the_writer(env, args):
+    try:
+        return run_cli(env, args)
+    finally:
+        env.writer.kill()
+        env.writer.wait()
+
+
+@case("db_uncommitted_transaction_is_not_read", "is being written by another process",
+      run=_run_beside_the_writer)
+def _(env):
+    """Issue 45, defect 7: another process's uncommitted transaction (spilled to the file)
+    was read: NaN parameters here, focal lengths x3 in the issue."""
+    database = env.small_db()
+    env.writer = _uncommitted_write(database, "wait")
+    return env.mapper(database, None, None, "--seed", "0")
+
+
 # ---- Ray and hierarchical_mapper
 
 
