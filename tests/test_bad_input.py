@@ -1514,6 +1514,42 @@ def _(env):
     return env.mapper(database, None, None, "--seed", "0")
 
 
+# The CLI, with SIGTERM sent as soon as the subcommand's modules (pycolmap) are loaded.
+SIGTERM_AFTER_LOADING = """
+import os, signal, sys
+import colmap_ext.cli as cli
+build_parser = cli.build_parser
+def build_then_terminate(*args, **kwargs):
+    parser = build_parser(*args, **kwargs)
+    os.kill(os.getpid(), signal.SIGTERM)
+    return parser
+cli.build_parser = build_then_terminate
+sys.argv[0] = "colmap-ext"
+sys.exit(cli.main())
+"""
+
+
+def _run_terminated_after_loading(env, args):
+    return run_cli(env, args, cli=[sys.executable, "-c", SIGTERM_AFTER_LOADING])
+
+
+@case("sigterm_while_loading", "interrupted by SIGTERM", code=143,
+      run=_run_terminated_after_loading)
+def _(env):
+    """Issue 45, defect 16: SIGTERM in the first 0.35 s printed glog's stack dump."""
+    return env.mapper(env.small_db(), None, None, "--seed", "0")
+
+
+@case("hier_sigterm_while_mapping_clusters", "interrupted by SIGTERM", code=143,
+      command="hierarchical_mapper", run=interrupted("| 1/", signal.SIGTERM))
+def _(env):
+    """Issue 45, defect 16: multiprocessing's "leaked semaphore" warnings came after the
+    last line (interrupted once a cluster is mapped: the workers have run a task)."""
+    database, images, _ = env.assets.big
+    return _hierarchical(env, "--leaf_max_num_images", "12", "--image_overlap", "2",
+                         "--num_workers", "2", database=env.copy(database))
+
+
 # ---- Ray and hierarchical_mapper
 
 
