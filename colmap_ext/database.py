@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import shutil
 import sqlite3
-import tempfile
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator, Mapping
@@ -22,6 +21,7 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.errors import UserError
+from colmap_ext.temporary import OwnedTemporaryDirectory
 
 
 # Descriptors kept in memory after reading, the most recently used images' first.
@@ -42,7 +42,7 @@ class DescriptorReader(Mapping[int, np.ndarray]):
     database when asked; the most recently used are kept up to `max_bytes`. The copy's
     folder is removed with the reader. Safe to use from several threads."""
 
-    def __init__(self, folder: tempfile.TemporaryDirectory, copy: Path, image_ids: list[int],
+    def __init__(self, folder: OwnedTemporaryDirectory, copy: Path, image_ids: list[int],
                  max_bytes: int = DESCRIPTOR_CACHE_BYTES) -> None:
         self._folder = folder
         # Read only: pycolmap folds the write-ahead log into the file when it closes the
@@ -305,7 +305,7 @@ def read_database(path: str | Path) -> DatabaseContents:
     descriptors are read from that copy when asked for (DescriptorReader)."""
     path = Path(path)
     check_database_file(path)
-    folder = tempfile.TemporaryDirectory(prefix="colmap-ext-db-")
+    folder = OwnedTemporaryDirectory("colmap-ext-db-")
     try:
         copy = Path(folder.name) / "database.db"
         copy_database(path, copy)

@@ -18,10 +18,8 @@ import json
 import mmap
 import os
 import re
-import shutil
 import signal
 import struct
-import tempfile
 import threading
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
@@ -31,6 +29,7 @@ import pycolmap
 
 from colmap_ext.database import NUM_PARAMS
 from colmap_ext.errors import UserError
+from colmap_ext.temporary import OwnedTemporaryDirectory
 
 OUTPUT_TYPES = ("BIN", "TXT")
 # The lock file of an output folder being written, and the prefix of our temporary folders.
@@ -124,23 +123,24 @@ def replacing(output_path: str | Path, layout: OutputLayout, overwrite: bool) ->
         with _locked(output_path):
             previous = _previous_result(output_path, layout, overwrite)
             num_recorded = _numbered_recorded(output_path, layout)
-            try:
-                staging = Path(tempfile.mkdtemp(prefix=TEMPORARY_PREFIX, dir=output_path))
+            try:  # and the leftovers of a killed run removed
+                scratch = OwnedTemporaryDirectory(TEMPORARY_PREFIX, output_path)
             except OSError as exc:
                 raise UserError(f"cannot write in {output_path}: {exc.strerror}") from None
+            staging = Path(scratch.name)
             try:
                 (staging / "new").mkdir()
                 yield staging / "new"
             except BaseException:
                 with _signals_deferred():  # a second Ctrl-C does not stop the clean-up
-                    shutil.rmtree(staging, ignore_errors=True)
+                    scratch.cleanup()
                 raise
             with _signals_deferred():
                 try:
                     _swap_in(staging / "new", output_path,
                              _replaced(previous, staging / "new", num_recorded), staging / "old")
                 finally:
-                    shutil.rmtree(staging, ignore_errors=True)
+                    scratch.cleanup()
     except BaseException:
         if created:
             with contextlib.suppress(OSError):

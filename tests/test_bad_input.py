@@ -1550,6 +1550,40 @@ def _(env):
                          "--num_workers", "2", database=env.copy(database))
 
 
+def _killed_then_run_again(marker: str) -> Callable:
+    """A runner: the command killed (SIGKILL) once `marker` is on stderr, then run again."""
+    def run(env: Env, args: list[str]) -> subprocess.CompletedProcess:
+        killed = Running(env, args)
+        assert killed.wait_for(marker), f"the run finished before {marker!r}\n{killed.stderr}"
+        killed.process.kill()
+        killed.result()
+        left = [p.name for folder in (env.out, env.tmp) for p in folder.iterdir()
+                if p.name.startswith(TEMP_PREFIXES)]
+        assert left, "the killed run left nothing to clean up"
+        env.notes.append(f"the killed run left {sorted(left)}")
+        return run_cli(env, args)
+    return run
+
+
+@case("mapper_removes_a_killed_runs_leftovers", "Registered", code=0,
+      run=_killed_then_run_again("registered:"))
+def _(env):
+    """Issue 45, defect 17: after kill -9, OUT/.colmap-ext-* and TMPDIR/colmap-ext-db-*
+    stayed for ever; the next run removes them (the harness checks none is left)."""
+    database, images, _ = env.assets.big
+    return env.mapper(env.copy(database), env.copy(images), None, "--overwrite", "--seed", "0")
+
+
+@case("reconstruct_removes_a_killed_runs_leftovers", "Model 0:", code=0, command="reconstruct",
+      run=_killed_then_run_again("extract"))
+def _(env):
+    """Issue 45, defect 17: after kill -9, WS/.colmap-ext-* and TMPDIR/colmap-ext-sift-*
+    stayed for ever."""
+    args = _reconstruct_over_a_workspace(env)
+    env.protected.remove(env.out)  # the second run replaces the workspace
+    return args
+
+
 # ---- Ray and hierarchical_mapper
 
 
