@@ -63,7 +63,8 @@ def _raise_interrupted(signum: int, frame: object) -> None:
 def handle_interrupts() -> None:
     """SIGINT and SIGTERM raise `Interrupted`, so every command cleans up and ends the
     same way. pycolmap's glog replaces SIGTERM's handler with a stack dump, so this runs
-    after the imports; a SIGINT ignored from the start (a background job) stays ignored."""
+    once pycolmap is loaded; a SIGINT ignored from the start (a background job) stays
+    ignored."""
     for signum in (signal.SIGINT, signal.SIGTERM):
         if signal.getsignal(signum) is not signal.SIG_IGN:
             signal.signal(signum, _raise_interrupted)
@@ -107,6 +108,15 @@ def main(argv: list[str] | None = None) -> int:
     limit_malloc_arenas()  # before any thread starts: imports start BLAS's
     argv = sys.argv[1:] if argv is None else argv
     try:
+        # pycolmap's glog installs a stack dump for SIGTERM as pycolmap loads: load it
+        # before the subcommand, and replace that handler at once (handle_interrupts).
+        # Not at the top: after NumPy (colmap_ext/__init__.py), or PNG writes abort.
+        import pycolmap
+
+        # COLMAP's log lines go to stderr as before, but not also to files in /tmp (glog's
+        # default in pycolmap), which every run would leave behind.
+        pycolmap.logging.logtostderr = True
+        handle_interrupts()
         parser = build_parser(argv)  # imports the subcommand: Ctrl-C may come that early
         args, unknown = parser.parse_known_args(argv)
         if args.command is None:
@@ -118,12 +128,6 @@ def main(argv: list[str] | None = None) -> int:
             args._parser.error(f"unrecognized arguments: {' '.join(unknown)}")
         kwargs = {k: v for k, v in vars(args).items()
                   if k not in ("command", "_module", "_parser")}
-        # COLMAP's log lines go to stderr as before, but not also to files in /tmp (glog's
-        # default in pycolmap), which every run would leave behind.
-        import pycolmap  # not at the top: loaded before zlib, pycolmap breaks every PNG write
-
-        pycolmap.logging.logtostderr = True
-        handle_interrupts()
         args._module.main(**kwargs)
     except UserError as exc:
         print(f"colmap-ext: error: {exc}", file=sys.stderr)

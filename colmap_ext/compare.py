@@ -268,9 +268,10 @@ def compare(database_path: str | os.PathLike, image_path: str | os.PathLike,
     """Run the mappers, write CMP/<mapper>/..., report.json, report.md (and errors.png with a
     ground truth); returns the report.
 
-    The user's database is read once, as bytes, into a private copy; every mapper gets a
-    copy of that copy. Every check runs before the first mapper. The whole comparison is
-    built beside OUTPUT_PATH and replaces an earlier one at the end (model_io.replacing).
+    The user's database is read once into a private copy (database.copy_database); every
+    mapper gets a copy of that copy. Every check runs before the first mapper. The whole
+    comparison is built beside OUTPUT_PATH and replaces an earlier one at the end
+    (model_io.replacing).
     """
     database_path, image_path = Path(database_path), Path(image_path)
     names = parse_mappers(mappers)

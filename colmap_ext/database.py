@@ -1,16 +1,15 @@
 """Read a COLMAP database into memory without ever writing the user's file.
 
 pycolmap opens a database read-write and upgrades its schema in place, so we read
-from a private copy in a temporary folder and leave the original byte for byte. The
-descriptors, most of a database's size, stay in that copy and are read per image when
-the mapper asks for them (`DescriptorReader`).
+from a private copy in a temporary folder (`copy_database`, through SQLite) and leave the
+original byte for byte. The descriptors, most of a database's size, stay in that copy and
+are read per image when the mapper asks for them (`DescriptorReader`).
 """
 
 from __future__ import annotations
 
 import shutil
 import sqlite3
-import tempfile
 import threading
 from collections import OrderedDict
 from collections.abc import Iterator, Mapping
@@ -22,7 +21,8 @@ import numpy as np
 import pycolmap
 
 from colmap_ext.errors import UserError
-from colmap_ext.rigs import QUATERNION_NORM_TOLERANCE
+from colmap_ext.geometry import QUATERNION_NORM_TOLERANCE
+from colmap_ext.temporary import OwnedTemporaryDirectory
 
 
 # How far outside its image a keypoint may be (pixels): a simulated one's noise puts it a
@@ -46,7 +46,7 @@ class DescriptorReader(Mapping[int, np.ndarray]):
     database when asked; the most recently used are kept up to `max_bytes`. The copy's
     folder is removed with the reader. Safe to use from several threads."""
 
-    def __init__(self, folder: tempfile.TemporaryDirectory, copy: Path, image_ids: list[int],
+    def __init__(self, folder: OwnedTemporaryDirectory, copy: Path, image_ids: list[int],
                  max_bytes: int = DESCRIPTOR_CACHE_BYTES) -> None:
         self._folder = folder
         # Read only: pycolmap folds the write-ahead log into the file when it closes the
@@ -157,16 +157,64 @@ def check_database_file(path: Path) -> None:
         raise UserError(f"not an SQLite database: {path}")
 
 
-def copy_database(path: Path, copy: Path) -> None:
-    """Copy the file and its write-ahead log, if any (changes not yet folded into the file).
+# Seconds to wait for another process's write transaction on the database to end.
+BUSY_TIMEOUT_S = 5
 
-    Even a read-only SQLite connection leaves `-wal`/`-shm` files beside a WAL-mode
-    database (as COLMAP writes them), so the user's file is only ever read as bytes."""
+
+def copy_database(path: Path, copy: Path) -> None:
+    """Copy what `path` holds committed into the new file `copy`, creating no file beside
+    `path` and writing none.
+
+    A database with a rollback journal is copied by SQLite's backup API on a read-only
+    connection, inside a read transaction: SQLite's locks keep out the pages of a
+    transaction another process has not committed (waiting up to BUSY_TIMEOUT_S for it to
+    end). Two kinds SQLite cannot read so without writing beside them are copied as files
+    instead, and SQLite recovers the copy when it first opens it: a WAL database (as COLMAP
+    leaves them; even a read-only connection creates `-wal`/`-shm` files), its log's
+    uncommitted frames left out, and one with a hot journal (its writer died mid-transaction),
+    rolled back."""
+    if _is_wal_database(path):
+        _copy_files(path, copy, "-wal")
+        return
+    try:
+        source = sqlite3.connect(f"{path.resolve().as_uri()}?mode=ro", uri=True,
+                                 timeout=BUSY_TIMEOUT_S)
+    except sqlite3.Error as exc:
+        raise UserError(f"cannot read database {path}: {exc}") from None
+    try:
+        with closing(source), closing(sqlite3.connect(copy)) as target:
+            source.execute("BEGIN")
+            source.execute("SELECT count(*) FROM sqlite_master")  # takes the read lock
+            source.backup(target)
+    except sqlite3.Error as exc:
+        copy.unlink(missing_ok=True)
+        if getattr(exc, "sqlite_errorname", None) == "SQLITE_READONLY_ROLLBACK":
+            _copy_files(path, copy, "-journal")
+        elif getattr(exc, "sqlite_errorname", None) == "SQLITE_BUSY":
+            raise UserError(f"database {path} is being written by another process (still "
+                            f"locked after {BUSY_TIMEOUT_S} s); run again once it is "
+                            "done") from None
+        else:
+            raise UserError(f"cannot read database {path}: {exc}") from None
+
+
+def _is_wal_database(path: Path) -> bool:
+    """SQLite's header: file format versions 2 (bytes 18, 19) mean WAL mode."""
+    try:
+        with open(path, "rb") as f:
+            header = f.read(20)
+    except OSError as exc:
+        raise UserError(f"cannot read database {path}: {exc.strerror}") from None
+    return header[18:20] == b"\x02\x02"
+
+
+def _copy_files(path: Path, copy: Path, journal_suffix: str) -> None:
+    """Copy the database file and its journal or log (`journal_suffix`), if any, as bytes."""
     try:
         shutil.copyfile(path, copy)
-        wal = path.with_name(f"{path.name}-wal")
-        if wal.is_file():
-            shutil.copyfile(wal, copy.with_name(f"{copy.name}-wal"))
+        journal = path.with_name(f"{path.name}{journal_suffix}")
+        if journal.is_file():
+            shutil.copyfile(journal, copy.with_name(f"{copy.name}{journal_suffix}"))
     except OSError as exc:
         raise UserError(f"cannot copy database {path} to a temporary folder: "
                         f"{exc.strerror or exc}") from None
@@ -175,7 +223,7 @@ def copy_database(path: Path, copy: Path) -> None:
 _MODELS = {int(model_id): pycolmap.Camera.create_from_model_id(0, model_id, 1.0, 1, 1)
            for name, model_id in pycolmap.CameraModelId.__members__.items() if name != "INVALID"}
 # COLMAP's camera model ids -> number of parameters, and the focal lengths' indices.
-_NUM_PARAMS = {model_id: len(camera.params) for model_id, camera in _MODELS.items()}
+NUM_PARAMS = {model_id: len(camera.params) for model_id, camera in _MODELS.items()}
 _FOCAL_LENGTH_IDXS = {model_id: camera.focal_length_idxs() for model_id, camera in _MODELS.items()}
 # Bytes of the two-view geometry blobs that hold one fixed-size array each (doubles):
 # F, E, H 3x3, qvec 4, tvec 3. Empty or NULL: not estimated.
@@ -212,13 +260,13 @@ def _check_tables(copy: Path, path: Path) -> None:
 
 def _check_camera(camera_id: int, model_id: int, width: int, height: int, params: bytes | None,
                   path: Path) -> None:
-    if model_id not in _NUM_PARAMS:
+    if model_id not in NUM_PARAMS:
         raise UserError(f"camera {camera_id} in {path} has model id {model_id}, which is no "
                         "COLMAP camera model")
     num_params = len(params or b"") / 8
-    if num_params != _NUM_PARAMS[model_id]:
+    if num_params != NUM_PARAMS[model_id]:
         raise UserError(f"camera {camera_id} in {path} has {num_params:g} params; its model "
-                        f"{pycolmap.CameraModelId(model_id).name} takes {_NUM_PARAMS[model_id]}")
+                        f"{pycolmap.CameraModelId(model_id).name} takes {NUM_PARAMS[model_id]}")
     values = np.frombuffer(params, np.float64)
     if not np.isfinite(values).all():
         raise UserError(f"camera {camera_id} in {path} has no valid parameters "
@@ -284,7 +332,7 @@ def read_database(path: str | Path) -> DatabaseContents:
     descriptors are read from that copy when asked for (DescriptorReader)."""
     path = Path(path)
     check_database_file(path)
-    folder = tempfile.TemporaryDirectory(prefix="colmap-ext-db-")
+    folder = OwnedTemporaryDirectory("colmap-ext-db-")
     try:
         copy = Path(folder.name) / "database.db"
         copy_database(path, copy)

@@ -21,7 +21,6 @@ import contextlib
 import os
 import socket
 import sqlite3
-import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from colmap_ext.errors import UserError
 from colmap_ext.executors import Executor, ImageFolder, ImageSource
 from colmap_ext.features import FeatureOptions, FeatureSummary, extract_features
 from colmap_ext.matching import MatchingOptions, MatchingSummary, match_features
+from colmap_ext.temporary import OwnedTemporaryDirectory
 from colmap_ext.timing import StageTimer
 
 # Ray runs a task again this many times when its worker process dies (Ray's default is 3).
@@ -196,7 +196,7 @@ class ImageBytes:
     @contextlib.contextmanager
     def local(self) -> Iterator[tuple[str, str | None]]:
         """(image folder, mask folder) readable on this node."""
-        with tempfile.TemporaryDirectory(prefix="colmap-ext-images-") as scratch:
+        with OwnedTemporaryDirectory("colmap-ext-images-") as scratch:
             for name, data in self.files.items():
                 path = Path(scratch, name)
                 path.parent.mkdir(parents=True, exist_ok=True)

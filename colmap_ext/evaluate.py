@@ -29,7 +29,7 @@ import pycolmap
 from colmap_ext.errors import UserError
 from colmap_ext.geometry import fit_similarity, rotation_angles_deg, vector_angles_deg
 from colmap_ext.ground_truth import FORMATS, GroundTruth, read_ground_truth
-from colmap_ext.model_io import read_model, write_json
+from colmap_ext.model_io import check_output_file, read_model, write_json
 from colmap_ext.plots import plot_errors, plot_scene
 from colmap_ext.rig_consistency import format_rig_consistency, rig_consistency, rig_frames_of
 
@@ -59,6 +59,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "the points and cameras against the ground truth (top and side "
                              "view) beside it: errors.png gives errors_scene.png")
     parser.add_argument("--format", choices=FORMATS, help="ground-truth format (default: detected)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace existing files at --output and --plot (and its _scene figure)")
     parser.add_argument("--rig_config", type=Path, default=None,
                         help="COLMAP's rig configuration JSON to measure the model's rig "
                              "consistency against (default: the model's own rigs)")
@@ -66,10 +68,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def main(model_path: str | os.PathLike, ground_truth: str | os.PathLike,
          output: str | os.PathLike | None = None, plot: str | os.PathLike | None = None,
-         format: str | None = None, rig_config: str | os.PathLike | None = None) -> dict:
+         format: str | None = None, rig_config: str | os.PathLike | None = None,
+         overwrite: bool = False) -> dict:
     """Evaluate the model at `model_path`, print a table, optionally write JSON and the plots
     (`plot` and `scene_plot_path(plot)`); with frames of several images, the rig's
-    consistency too (against `rig_config`, else the model's own rigs)."""
+    consistency too (against `rig_config`, else the model's own rigs). Existing files are
+    replaced only with `overwrite`, and an input never."""
+    inputs = [Path(path) for path in (model_path, ground_truth, rig_config) if path is not None]
+    outputs = [output] if output is not None else []
+    outputs += [plot, scene_plot_path(plot)] if plot is not None else []
+    for path in outputs:
+        check_output_file(path, inputs, overwrite)
     return evaluate_and_write(read_model(Path(model_path)), read_ground_truth(ground_truth, format),
                               output, plot, label=str(model_path), rig_config=rig_config)
 

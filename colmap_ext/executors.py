@@ -17,6 +17,7 @@ import math
 import multiprocessing
 import os
 import signal
+import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, wait
 from concurrent.futures import Executor as FuturesExecutor
@@ -115,7 +116,7 @@ class LocalExecutor(Executor):
         if self.processes:
             pool = ProcessPoolExecutor(self.num_workers,
                                        mp_context=multiprocessing.get_context("spawn"),
-                                       initializer=end_with_parent, initargs=(os.getpid(),))
+                                       initializer=start_worker, initargs=(os.getpid(),))
         else:
             pool = ThreadPoolExecutor(self.num_workers)
         try:
@@ -136,6 +137,15 @@ class LocalExecutor(Executor):
         done, _ = wait(pending, return_when=FIRST_COMPLETED)
         first = next(future for future in pending if future in done)
         return first.result(), [future for future in pending if future is not first]
+
+
+def start_worker(parent_pid: int) -> None:
+    """In a local pool's worker process: ended with its parent (`end_with_parent`), and
+    tqdm's lock a thread lock. tqdm makes a multiprocessing lock by default, even for a
+    disabled bar: a semaphore that a worker killed with its pool (on Ctrl-C) leaves to
+    Python's resource tracker, which then warns of it after the command's last line."""
+    tqdm.set_lock(threading.RLock())
+    end_with_parent(parent_pid)
 
 
 def end_with_parent(parent_pid: int) -> None:

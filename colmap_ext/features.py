@@ -19,7 +19,6 @@ import contextlib
 import math
 import os
 import statistics
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -36,6 +35,7 @@ from PIL import Image
 from colmap_ext.errors import UserError
 from colmap_ext.executors import Executor, ImageSource, LocalExecutor, chunks, items_per_task
 from colmap_ext.panorama import FACE_FORWARD_DOWN, CubeFaces, inside_mask, keypoint_scales
+from colmap_ext.temporary import OwnedTemporaryDirectory
 
 CAMERA_MODES = {"single": pycolmap.CameraMode.SINGLE, "per_folder": pycolmap.CameraMode.PER_FOLDER}
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".bmp", ".pgm", ".ppm", ".webp")
@@ -489,7 +489,7 @@ def extract_to_memory(image_path: str | os.PathLike, reader: pycolmap.ImageReade
                       domain_size_pooling: bool, num_threads: int) -> dict[str, Features]:
     """Keypoints and descriptors of `names` from pycolmap's extractor on a scratch
     database (one camera per image there: only the features are kept)."""
-    with tempfile.TemporaryDirectory(prefix="colmap-ext-sift-") as scratch:
+    with OwnedTemporaryDirectory("colmap-ext-sift-") as scratch:
         database_path = Path(scratch) / "database.db"
         with quiet_colmap_logs():
             pycolmap.extract_features(database_path, image_path, image_names=names,
@@ -522,7 +522,7 @@ def extract_cube_faces_to_memory(image_path: str | os.PathLike,
     COLMAP keeps on one image."""
     face_names = {name: [f"{index}_{face}.png" for face in range(len(FACE_FORWARD_DOWN))]
                   for index, name in enumerate(names)}
-    with tempfile.TemporaryDirectory(prefix="colmap-ext-cube-faces-") as scratch:
+    with OwnedTemporaryDirectory("colmap-ext-cube-faces-") as scratch:
         for name in names:
             panorama = read_grey(Path(image_path) / name)
             for face_name, image in zip(face_names[name], faces.render(panorama)):

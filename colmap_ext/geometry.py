@@ -7,6 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pycolmap
 
+# A quaternion written by hand to four digits ([0.7071, 0, 0.7071, 0]) is one; it is normalized.
+QUATERNION_NORM_TOLERANCE = 1e-3
+
 
 def rotation_angles_deg(R: np.ndarray) -> np.ndarray:
     """Angles of rotations (n,3,3) in degrees, as atan2(sin, cos): exact near 0 where arccos is not."""

@@ -23,7 +23,6 @@ here, or Ray tasks), and written here as the blocks complete.
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 import zlib
 from collections.abc import Iterator
@@ -40,6 +39,7 @@ from colmap_ext.cameras import pixel_angles, rays
 from colmap_ext.errors import UserError
 from colmap_ext.executors import Executor, LocalExecutor, chunks, items_per_task
 from colmap_ext.features import quiet_colmap_logs
+from colmap_ext.temporary import OwnedTemporaryDirectory
 
 MATCHERS = ("auto", "exhaustive", "sequential")
 # "auto": exhaustive up to this many images (n^2 / 2 pairs stay cheap), sequential beyond.
@@ -263,7 +263,7 @@ def faiss_matches(pairs: list[tuple[int, int]], features: dict[int, Features],
                   cameras: dict[int, pycolmap.Camera], names: dict[int, str],
                   max_ratio: float, num_threads: int) -> dict[tuple[int, int], np.ndarray]:
     """(id1, id2) with id1 < id2 -> the matches pycolmap's matcher stores for the pair."""
-    with tempfile.TemporaryDirectory(prefix="colmap-ext-match-") as scratch:
+    with OwnedTemporaryDirectory("colmap-ext-match-") as scratch:
         database_path = Path(scratch) / "database.db"
         with pycolmap.Database.open(database_path) as db, pycolmap.DatabaseTransaction(db):
             for camera in {camera.camera_id: camera for camera in cameras.values()}.values():

@@ -43,8 +43,11 @@ from colmap_ext.timing import StageTimer
 DATABASE_NAME = "database.db"
 WORKSPACE = OutputLayout("a workspace", {
     DATABASE_NAME: is_file, f"{DATABASE_NAME}-wal": is_file, f"{DATABASE_NAME}-shm": is_file,
-    "sparse": MAPPER_OUTPUT.is_output, "masks": holds_only(r".+\.png"),
-    "reconstruct_summary.json": is_file})
+    "sparse": MAPPER_OUTPUT.is_output, "reconstruct_summary.json": is_file})
+# With --segment the workspace's masks/ is ours too; without, a masks/ there is the user's
+# (perhaps this run's --mask_path) and is left alone.
+SEGMENTED_WORKSPACE = OutputLayout(WORKSPACE.result,
+                                   {**WORKSPACE.entries, "masks": holds_only(r".+\.png")})
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -127,7 +130,8 @@ def main(image_path: str, workspace_path: str, camera_model: str | None = None,
                          rig_configs)
     matching = MatchingOptions(matcher=matcher, exact=exact_matching,
                                seed=secrets.randbits(31) if seed is None else seed)
-    with replacing(workspace_path, WORKSPACE, overwrite) as new_workspace, \
+    layout = WORKSPACE if segment is None else SEGMENTED_WORKSPACE
+    with replacing(workspace_path, layout, overwrite) as new_workspace, \
             distributed.optional_cluster(ray_address) as cluster:
         summary = run_stages(
             image_path, new_workspace, partial(moved, new=new_workspace, final=workspace),

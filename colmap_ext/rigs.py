@@ -33,6 +33,7 @@ import yaml
 
 from colmap_ext.errors import UserError
 from colmap_ext.features import check_camera, check_camera_fits
+from colmap_ext.geometry import QUATERNION_NORM_TOLERANCE
 from colmap_ext.model_io import write_json
 
 # Kalibr distortion model (with camera_model pinhole) -> COLMAP camera model; the COLMAP
@@ -45,8 +46,6 @@ KALIBR_DISTORTION_MODELS = {
 
 # A pose read from text is a rotation to about 1e-9; far beyond that it is not one.
 _ROTATION_TOLERANCE = 1e-6
-# A quaternion written by hand to four digits ([0.7071, 0, 0.7071, 0]) is one; it is normalized.
-QUATERNION_NORM_TOLERANCE = 1e-3
 # A rig's cameras are closer than this to each other (in any unit a calibration uses).
 MAX_RIG_TRANSLATION = 1e6
 # A rig configuration or camchain file is a few kilobytes; a parser's time and memory grow

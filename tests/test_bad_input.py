@@ -782,6 +782,8 @@ def _replaced(env, result):
 def _(env):
     shutil.copytree(env.assets.model, env.out)
     shutil.copytree(env.out / "0", env.out / "1")  # a second model of the earlier run
+    summary = env.out / "mapper_summary.json"
+    summary.write_text(json.dumps({**json.loads(summary.read_text()), "num_models": 2}))
     return env.mapper(env.small_db(), None, None, "--seed", "5", "--overwrite")
 
 
@@ -1641,6 +1643,240 @@ def _(env):
 def _(env):
     database, images, _ = env.assets.big
     return _compare_over_a_comparison(env, database, images)
+
+
+# ---- Issue 45: what --overwrite replaces, damaged model files, the database's copy,
+# interrupts while loading, leftovers of killed runs
+
+
+def _all_kept(names: list[str]) -> Callable:
+    def after(env, result):
+        assert sorted(p.name for p in env.out.iterdir()) == names, "an entry was removed"
+    return after
+
+
+@case("reconstruct_overwrite_keeps_the_users_masks", "Model 0:", code=0, command="reconstruct",
+      after=_all_kept(["database.db", "masks", "reconstruct_summary.json", "sparse"]))
+def _(env):
+    """Issue 45, defect 1: WS/masks, this run's --mask_path, was taken for our own output
+    (it holds PNG files) and deleted."""
+    import cv2
+
+    args = _reconstruct_over_a_workspace(env)
+    env.protected.remove(env.out)  # the database and sparse/ are replaced, the masks kept
+    masks = env.out / "masks"
+    masks.mkdir()
+    for image in sorted(env.assets.ring[0].iterdir()):
+        assert cv2.imwrite(str(masks / f"{image.name}.png"), np.full((240, 320), 255, np.uint8))
+    env.protected.append(masks)
+    return [*args, "--mask_path", str(masks)]
+
+
+@case("evaluate_output_exists_is_kept", "report.json exists; pass --overwrite", command="evaluate")
+def _(env):
+    """Issue 45, defect 2: --output replaced any file."""
+    (env.inputs / "report.json").write_text('{"an earlier": "report"}\n')
+    return env.evaluate(None, None, "--output", str(env.inputs / "report.json"))
+
+
+@case("evaluate_plot_keeps_the_users_scene_figure", "fig_scene.png exists; pass --overwrite",
+      command="evaluate")
+def _(env):
+    """Issue 45, defect 2: --plot fig.png replaced the user's fig_scene.png."""
+    write_png(env.inputs / "fig_scene.png")
+    return env.evaluate(None, None, "--plot", str(env.inputs / "fig.png"))
+
+
+@case("evaluate_output_is_the_ground_truth", "is an input of this run", command="evaluate")
+def _(env):
+    """Issue 45, defect 2: `--output GT` turned the ground truth into JSON, --overwrite or not."""
+    truth = env.copy(env.assets.ground_truth)
+    return env.evaluate(None, truth, "--output", str(truth), "--overwrite")
+
+
+@case("overwrite_keeps_model_folders_it_did_not_write", "Registered 6 images", code=0,
+      after=_all_kept(["0", "7", "mapper_summary.json"]))
+def _(env):
+    """Issue 45, defect 3: --overwrite removed OUT/7, a model the earlier run (whose
+    summary records one model, OUT/0) did not write."""
+    shutil.copytree(env.assets.model, env.out)
+    shutil.copytree(env.out / "0", env.out / "7")
+    env.protected.append(env.out / "7")
+    return env.mapper(env.small_db(), None, None, "--seed", "0", "--overwrite")
+
+
+# An address-space limit for runs that read damaged models: pycolmap's unbounded
+# allocation (issue 45, defect 4: 16.5 GB) ends in bad_alloc instead of taking the machine.
+MEMORY_LIMIT_BYTES = 8 * 2**30
+
+
+def _run_with_memory_limit(env, args):
+    def preexec() -> None:
+        resource.setrlimit(resource.RLIMIT_AS, (MEMORY_LIMIT_BYTES, MEMORY_LIMIT_BYTES))
+    return run_cli(env, args, preexec_fn=preexec)
+
+
+def _model_with(env, name: str, edit: Callable[[bytes], bytes]) -> Path:
+    """A copy of the small scene's model with its file `name` edited."""
+    model = env.copy(env.assets.model / "0", "model")
+    (model / name).write_bytes(edit((model / name).read_bytes()))
+    return model
+
+
+for _name, _cut in (("to_0_bytes", lambda data: b""), ("to_4096_bytes", lambda data: data[:4096]),
+                   ("by_one_byte", lambda data: data[:-1])):
+    @case(f"evaluate_points3D_truncated_{_name}", "points3D.bin is truncated", command="evaluate",
+          run=_run_with_memory_limit)
+    def _(env, cut=_cut):
+        """Issue 45, defect 4: a points3D.bin cut short (a full disk) made pycolmap allocate
+        without bound."""
+        return env.evaluate(_model_with(env, "points3D.bin", cut))
+
+
+@case("mapper_input_model_truncated", "points3D.bin is truncated", run=_run_with_memory_limit)
+def _(env):
+    """Issue 45, defect 4, through `mapper --input_path`."""
+    model = _model_with(env, "points3D.bin", lambda data: data[:4096])
+    return env.mapper(env.small_db(), None, None, "--input_path", str(model))
+
+
+@case("evaluate_images_bin_image_without_frame", "images.bin is corrupt: its image 999 is in no frame",
+      command="evaluate", run=_run_with_memory_limit)
+def _(env):
+    """Issue 45, defects 4 and 15: "unordered_map::at" for an images.bin whose image is in
+    no frame."""
+    return env.evaluate(_model_with(
+        env, "images.bin", lambda data: data[:8] + (999).to_bytes(4, "little") + data[12:]))
+
+
+# A writer that changes the cameras in a transaction large enough to spill to the database
+# file (a rollback journal beside it), prints "spilled", then dies without committing
+# (argv[2] "die") or waits to be killed.
+UNCOMMITTED_WRITER = """
+import os, sqlite3, sys, time
+import numpy as np
+conn = sqlite3.connect(sys.argv[1], isolation_level=None)
+conn.execute("PRAGMA cache_size = 1")
+conn.execute("BEGIN")
+conn.execute("UPDATE cameras SET params = ?", (np.full(8, np.nan).tobytes(),))
+conn.execute("UPDATE descriptors SET data = data || x'00'")
+print("spilled", flush=True)
+if sys.argv[2] == "die":
+    os._exit(0)
+time.sleep(600)
+"""
+
+
+def _uncommitted_write(database: Path, mode: str) -> subprocess.Popen:
+    """The writer on `database`, turned into a rollback-journal database (COLMAP leaves
+    them in WAL mode, whose uncommitted frames stay in the log), once it has spilled."""
+    edit_database(database, "PRAGMA journal_mode = DELETE")
+    writer = subprocess.Popen([sys.executable, "-c", UNCOMMITTED_WRITER, str(database), mode],
+                              stdout=subprocess.PIPE, text=True)
+    assert writer.stdout.readline().strip() == "spilled"
+    with closing(sqlite3.connect(f"{database.as_uri()}?immutable=1", uri=True)) as conn:
+        params = np.frombuffer(conn.execute("SELECT params FROM cameras").fetchone()[0])
+    assert np.isnan(params).all(), "the uncommitted parameters did not reach the file"
+    assert Path(f"{database}-journal").stat().st_size > 0
+    return writer
+
+
+@case("db_hot_journal_is_rolled_back", "Registered 6 images", code=0)
+def _(env):
+    """Issue 45, defect 7: the pages of a transaction whose writer died (a hot journal
+    beside the database) were read as the database: NaN parameters, or "malformed". Its
+    committed content maps; the database and its journal stay as they are."""
+    database = env.small_db()
+    _uncommitted_write(database, "die").wait()
+    return env.mapper(database, None, None, "--seed", "0")
+
+
+def _run_beside_the_writer(env, args):
+    try:
+        return run_cli(env, args)
+    finally:
+        env.writer.kill()
+        env.writer.wait()
+
+
+@case("db_uncommitted_transaction_is_not_read", "is being written by another process",
+      run=_run_beside_the_writer)
+def _(env):
+    """Issue 45, defect 7: another process's uncommitted transaction (spilled to the file)
+    was read: NaN parameters here, focal lengths x3 in the issue."""
+    database = env.small_db()
+    env.writer = _uncommitted_write(database, "wait")
+    return env.mapper(database, None, None, "--seed", "0")
+
+
+# The CLI, with SIGTERM sent as soon as the subcommand's modules (pycolmap) are loaded.
+SIGTERM_AFTER_LOADING = """
+import os, signal, sys
+import colmap_ext.cli as cli
+build_parser = cli.build_parser
+def build_then_terminate(*args, **kwargs):
+    parser = build_parser(*args, **kwargs)
+    os.kill(os.getpid(), signal.SIGTERM)
+    return parser
+cli.build_parser = build_then_terminate
+sys.argv[0] = "colmap-ext"
+sys.exit(cli.main())
+"""
+
+
+def _run_terminated_after_loading(env, args):
+    return run_cli(env, args, cli=[sys.executable, "-c", SIGTERM_AFTER_LOADING])
+
+
+@case("sigterm_while_loading", "interrupted by SIGTERM", code=143,
+      run=_run_terminated_after_loading)
+def _(env):
+    """Issue 45, defect 16: SIGTERM in the first 0.35 s printed glog's stack dump."""
+    return env.mapper(env.small_db(), None, None, "--seed", "0")
+
+
+@case("hier_sigterm_while_mapping_clusters", "interrupted by SIGTERM", code=143,
+      command="hierarchical_mapper", run=interrupted("| 1/", signal.SIGTERM))
+def _(env):
+    """Issue 45, defect 16: multiprocessing's "leaked semaphore" warnings came after the
+    last line (interrupted once a cluster is mapped: the workers have run a task)."""
+    database, images, _ = env.assets.big
+    return _hierarchical(env, "--leaf_max_num_images", "12", "--image_overlap", "2",
+                         "--num_workers", "2", database=env.copy(database))
+
+
+def _killed_then_run_again(marker: str) -> Callable:
+    """A runner: the command killed (SIGKILL) once `marker` is on stderr, then run again."""
+    def run(env: Env, args: list[str]) -> subprocess.CompletedProcess:
+        killed = Running(env, args)
+        assert killed.wait_for(marker), f"the run finished before {marker!r}\n{killed.stderr}"
+        killed.process.kill()
+        killed.result()
+        left = [p.name for folder in (env.out, env.tmp) for p in folder.iterdir()
+                if p.name.startswith(TEMP_PREFIXES)]
+        assert left, "the killed run left nothing to clean up"
+        env.notes.append(f"the killed run left {sorted(left)}")
+        return run_cli(env, args)
+    return run
+
+
+@case("mapper_removes_a_killed_runs_leftovers", "Registered", code=0,
+      run=_killed_then_run_again("registered:"))
+def _(env):
+    """Issue 45, defect 17: after kill -9, OUT/.colmap-ext-* and TMPDIR/colmap-ext-db-*
+    stayed for ever; the next run removes them (the harness checks none is left)."""
+    database, images, _ = env.assets.big
+    return env.mapper(env.copy(database), env.copy(images), None, "--overwrite", "--seed", "0")
+
+
+@case("reconstruct_removes_a_killed_runs_leftovers", "Model 0:", code=0, command="reconstruct",
+      run=_killed_then_run_again("extract"))
+def _(env):
+    """Issue 45, defect 17: after kill -9, WS/.colmap-ext-* and TMPDIR/colmap-ext-sift-*
+    stayed for ever."""
+    args = _reconstruct_over_a_workspace(env)
+    env.protected.remove(env.out)  # the second run replaces the workspace
+    return args
 
 
 # ---- Ray and hierarchical_mapper

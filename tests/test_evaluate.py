@@ -19,6 +19,7 @@ from colmap_ext.evaluate import (
     add_arguments,
     aligned_to_ground_truth,
     evaluate,
+    evaluate_and_write,
     main,
     rotation_angles_deg,
     scene_plot_path,
@@ -309,7 +310,7 @@ def test_arguments_match_main() -> None:
     add_arguments(parser)
     args = parser.parse_args(["--model_path", "m", "--ground_truth", "g", "--format", "strecha"])
     assert set(vars(args)) == {"model_path", "ground_truth", "output", "plot", "format",
-                               "rig_config"}
+                               "rig_config", "overwrite"}
     with pytest.raises(SystemExit):
         parser.parse_args(["--model_path", "m", "--ground_truth", "g", "--format", "bundler"])
 
@@ -387,9 +388,25 @@ def test_json_write_failure_is_a_user_error_and_leaves_nothing(tmp_path: Path) -
     blocked = tmp_path / "blocked"
     blocked.mkdir()
     (blocked / "report.json").mkdir()  # os.replace cannot put a file over a folder
+    with pytest.raises(UserError, match="output path is a folder"):  # main checks first
+        main(model_path, gt_path, output=blocked / "report.json", overwrite=True)
     with pytest.raises(UserError, match="cannot write"):
-        main(model_path, gt_path, output=blocked / "report.json")
+        evaluate_and_write(pycolmap.Reconstruction(model_path), read_ground_truth(gt_path),
+                           blocked / "report.json", None, label="model")
     assert [p.name for p in blocked.iterdir()] == ["report.json"]
+
+
+def test_existing_outputs_are_replaced_only_with_overwrite(tmp_path: Path) -> None:
+    """Issue 45, defect 2 (the CLI cases are in test_bad_input.py)."""
+    model_path = write_model(tmp_path / "model", ring())
+    gt_path = write_par(tmp_path / "ring_par.txt", ring())
+    report = tmp_path / "report.json"
+    report.write_text("{}\n")
+    with pytest.raises(UserError, match="report.json exists; pass --overwrite"):
+        main(model_path, gt_path, output=report)
+    assert report.read_text() == "{}\n"
+    main(model_path, gt_path, output=report, overwrite=True)
+    assert json.loads(report.read_text())["num_registered"] == len(ring())
 
 
 # --- the plot -----------------------------------------------------------------------------
