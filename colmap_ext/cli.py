@@ -135,7 +135,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt as exc:
         signum = getattr(exc, "signum", signal.SIGINT)
         silence_colmap_logs()  # COLMAP's threads still winding down: our line is the last
-        print(f"colmap-ext: interrupted by {signal.Signals(signum).name}; no partial result "
+        # On a line of its own: the signal may have cut a progress bar (a child's) mid-line.
+        print(f"\ncolmap-ext: interrupted by {signal.Signals(signum).name}; no partial result "
               "was written", file=sys.stderr)
         return 128 + signum
     return 0
