@@ -16,12 +16,17 @@ inliers, as COLMAP does.
 Matchers: exhaustive (every pair), sequential (each image with the next `overlap` in
 name order, plus COLMAP's quadratic overlap) and, for rings such as turntables, loop
 closure: the last images matched with the first ones, through an imported pair list.
+Sequential matching also runs COLMAP's loop detection (every `loop_detection_period`-th
+image with its most similar ones by visual words, where a sequence revisits a place),
+on COLMAP's vocabulary tree file when one is given, otherwise on a vocabulary trained
+here on the sequence's own descriptors: no download, offline too.
 The pairs are matched and verified in blocks, each a task of an executor (threads
 here, or Ray tasks), and written here as the blocks complete.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import time
 import zlib
@@ -33,6 +38,7 @@ from typing import Any
 
 import numpy as np
 import pycolmap
+from tqdm import tqdm
 
 import solvers
 from colmap_ext.cameras import pixel_angles, rays
@@ -58,6 +64,15 @@ MAX_PAIRS_PER_TASK = 500
 # Pairs are grouped by blocks of this many images (in name order) on both sides, so a
 # task needs the features of at most two blocks.
 PAIR_BLOCK_IMAGES = 32
+# Loop detection's own vocabulary: k-means (one round of this many iterations) of at most
+# this many of the sequence's descriptors, drawn evenly from its images, into this many
+# visual words (COLMAP's downloadable trees have 2^16 to 2^20, trained on millions of
+# images; on one sequence 2^10 retrieve as well, in seconds: docs/experiments/loop-detection.md).
+VOCABULARY_TRAINING_DESCRIPTORS = 2**16
+VOCABULARY_WORDS = 2**10
+VOCABULARY_ITERATIONS = 5
+# Bits of each descriptor's Hamming embedding in the visual index (COLMAP's default).
+VOCABULARY_EMBEDDING_BITS = 64
 
 Config = pycolmap.TwoViewGeometryConfiguration
 Features = tuple[np.ndarray, np.ndarray]  # keypoints (n, 6) float32, descriptors (n, 128) uint8
@@ -79,6 +94,8 @@ class MatchingSummary:
     pairs: list[PairResult]  # pairs verified by this call, in pair-id order
     matching_seconds: float
     verification_seconds: float
+    # Loop detection's vocabulary training, indexing and retrieval (sequential matching).
+    loop_detection_seconds: float = 0.0
 
     @property
     def num_verified(self) -> int:
@@ -93,6 +110,7 @@ class MatchingSummary:
             "num_inlier_matches": sum(pair.num_inliers for pair in self.pairs),
             "matching_seconds": round(self.matching_seconds, 3),
             "verification_seconds": round(self.verification_seconds, 3),
+            "loop_detection_seconds": round(self.loop_detection_seconds, 3),
             "pairs": [[p.name1, p.name2, p.num_matches, p.num_inliers] for p in self.pairs],
         }
 
@@ -107,6 +125,16 @@ class MatchingOptions:
     overlap: int = 10
     # Sequential matching: the last images with the first ones too (rings, turntables).
     loop_closure: bool = True
+    # Sequential matching: COLMAP's loop detection, every `loop_detection_period`-th image
+    # with its `loop_detection_num_images` most similar images by visual words (COLMAP's
+    # defaults, off as in COLMAP's sequential matcher: up to period x num_images more pairs,
+    # twice the sequential ones at 201 frames, for sequences that never come back).
+    loop_detection: bool = False
+    loop_detection_period: int = 10
+    loop_detection_num_images: int = 50
+    # COLMAP's vocabulary tree file for loop detection, used as it is; None: a vocabulary
+    # trained on the database's own descriptors.
+    vocab_tree_path: str | os.PathLike | None = None
     # SIFT ratio test (the paper's 1.25, inverted).
     max_ratio: float = 0.8
     # Sampson error threshold (px) of the verification (COLMAP's default).
@@ -125,6 +153,12 @@ class MatchingOptions:
         if isinstance(self.overlap, bool) or not isinstance(self.overlap, int) \
                 or self.overlap < 1:
             raise UserError(f"overlap must be a positive integer, got {self.overlap!r}")
+        for name in ("loop_detection_period", "loop_detection_num_images"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise UserError(f"{name} must be a positive integer, got {value!r}")
+        if self.vocab_tree_path is not None and not Path(self.vocab_tree_path).is_file():
+            raise UserError(f"vocabulary tree not found: {self.vocab_tree_path}")
         if not 0 < self.max_ratio <= 1:
             raise UserError(f"max_ratio must be in (0, 1], got {self.max_ratio!r}")
         if not (np.isfinite(self.max_error_px) and self.max_error_px > 0):
@@ -147,7 +181,7 @@ def match_features(database_path: str | os.PathLike, options: MatchingOptions | 
     if matcher == "auto":
         matcher = "exhaustive" if len(names) <= AUTO_EXHAUSTIVE_MAX_IMAGES else "sequential"
     start = time.perf_counter()
-    pairs = pairs_to_match(database_path, matcher, options.overlap, options.loop_closure)
+    pairs, loop_detection_seconds = pairs_to_match(database_path, matcher, options, progress)
     # Here, one task at a time on every core: pycolmap's matcher builds the FAISS index of
     # each image again in every task, and holds it in memory while the task runs.
     executor = executor or LocalExecutor(1, threads_per_task=os.cpu_count() or 1)
@@ -169,12 +203,13 @@ def match_features(database_path: str | os.PathLike, options: MatchingOptions | 
             worker_seconds += (match_s, verify_s)
         name_of = {image.image_id: image.name for image in db.read_all_images()}
     results.sort(key=lambda pair: pycolmap.image_pair_to_pair_id(pair.id1, pair.id2))
-    elapsed = time.perf_counter() - start
+    elapsed = time.perf_counter() - start - loop_detection_seconds
     # Matching and verification share the tasks: the wall time is split as the workers'.
     share = worker_seconds[0] / worker_seconds.sum() if worker_seconds.sum() > 0 else 1.0
     pair_results = [PairResult(name_of[p.id1], name_of[p.id2], len(p.matches),
                                len(p.geometry.inlier_matches)) for p in results]
-    return MatchingSummary(matcher, pair_results, elapsed * share, elapsed * (1 - share))
+    return MatchingSummary(matcher, pair_results, elapsed * share, elapsed * (1 - share),
+                           loop_detection_seconds)
 
 
 def pair_blocks(pairs: list[tuple[int, int]], names: list[str], db: pycolmap.Database,
@@ -288,25 +323,29 @@ def faiss_matches(pairs: list[tuple[int, int]], features: dict[int, Features],
             for pair_id, matches in zip(pair_ids, all_matches)}
 
 
-def pairs_to_match(database_path: Path, matcher: str, overlap: int,
-                   loop_closure: bool) -> list[tuple[int, int]]:
+def pairs_to_match(database_path: Path, matcher: str, options: MatchingOptions,
+                   progress: bool = True) -> tuple[list[tuple[int, int]], float]:
     """The image-id pairs to match, in COLMAP's orientation: pycolmap's exhaustive or
-    sequential pair generator, then the quadratic and loop closure pairs not among them."""
+    sequential pair generator (with loop detection), then the quadratic and loop closure
+    pairs not among them; and the seconds loop detection took."""
+    loop_detection_seconds = 0.0
     with pycolmap.Database.open(database_path) as db:
         if matcher == "exhaustive":
             generator = pycolmap.ExhaustivePairGenerator(pycolmap.ExhaustivePairingOptions(), db)
+            pairs = [tuple(pair) for pair in generator.all_pairs()]
+        elif not options.loop_detection:
+            pairs = sequential_pairs(db, options, None, progress)
         else:
-            # pycolmap's quadratic overlap replaces the linear pairs rather than adding
-            # to them: linear pairs from pycolmap, the quadratic ones from us.
-            generator = pycolmap.SequentialPairGenerator(
-                pycolmap.SequentialPairingOptions(overlap=overlap, quadratic_overlap=False), db)
-        pairs = [tuple(pair) for pair in generator.all_pairs()]
+            start = time.perf_counter()
+            with loop_detection_vocabulary(db, options.vocab_tree_path, progress) as vocabulary:
+                pairs = sequential_pairs(db, options, vocabulary, progress)
+            loop_detection_seconds = time.perf_counter() - start
         if matcher != "exhaustive":
             ids = {image.name: image.image_id for image in db.read_all_images()}
             names = sorted(ids)
-            more = quadratic_pairs(names, overlap)
-            if loop_closure:
-                more += loop_closure_pairs(names, overlap)
+            more = quadratic_pairs(names, options.overlap)
+            if options.loop_closure:
+                more += loop_closure_pairs(names, options.overlap)
             pairs += [(ids[a], ids[b]) for a, b in more]
     seen: set[int] = set()
     unique = []
@@ -315,7 +354,78 @@ def pairs_to_match(database_path: Path, matcher: str, overlap: int,
         if id1 != id2 and pair_id not in seen:
             seen.add(pair_id)
             unique.append((id1, id2))
-    return unique
+    return unique, loop_detection_seconds
+
+
+def sequential_pairs(db: pycolmap.Database, options: MatchingOptions,
+                     vocabulary: Path | None, progress: bool) -> list[tuple[int, int]]:
+    """pycolmap's sequential pairs, with COLMAP's loop detection on `vocabulary` (None:
+    without). pycolmap's quadratic overlap replaces the linear pairs rather than adding
+    to them: linear pairs here, the quadratic ones from quadratic_pairs."""
+    pairing = pycolmap.SequentialPairingOptions(overlap=options.overlap, quadratic_overlap=False)
+    if vocabulary is not None:
+        pairing.loop_detection = True
+        pairing.loop_detection_period = options.loop_detection_period
+        pairing.loop_detection_num_images = options.loop_detection_num_images
+        pairing.vocab_tree_path = vocabulary
+    with quiet_colmap_logs():
+        try:  # the generator indexes every image on the vocabulary
+            generator = pycolmap.SequentialPairGenerator(pairing, db)
+        except (RuntimeError, ValueError) as error:
+            raise UserError(f"cannot use the vocabulary tree {vocabulary}: "
+                            f"{str(error).strip().splitlines()[-1]}") from None
+        if vocabulary is None:
+            return [tuple(pair) for pair in generator.all_pairs()]
+        # One step per image, then one per loop detection query.
+        num_images = db.num_images()
+        num_steps = num_images + -(-num_images // options.loop_detection_period)
+        pairs = []
+        with tqdm(total=num_steps, desc="loop detection", unit="image",
+                  disable=not progress) as bar:
+            while not generator.has_finished():
+                pairs += [tuple(pair) for pair in generator.next()]
+                bar.update()
+    return pairs
+
+
+@contextlib.contextmanager
+def loop_detection_vocabulary(db: pycolmap.Database, vocab_tree_path: str | os.PathLike | None,
+                              progress: bool) -> Iterator[Path]:
+    """The vocabulary tree file for loop detection: `vocab_tree_path` as it is, or one
+    trained on the database's own descriptors in a temporary folder, removed on exit."""
+    if vocab_tree_path is not None:
+        yield Path(vocab_tree_path)
+        return
+    with tempfile.TemporaryDirectory(prefix="colmap-ext-vocabulary-") as scratch:
+        path = Path(scratch) / "vocabulary.bin"
+        with tqdm(total=1, desc="loop detection vocabulary", unit="vocabulary",
+                  disable=not progress) as bar:
+            trained_vocabulary(db).write(path)
+            bar.update()
+        yield path
+
+
+def trained_vocabulary(db: pycolmap.Database) -> pycolmap.VisualIndex:
+    """A visual index whose words are the k-means clusters of at most
+    VOCABULARY_TRAINING_DESCRIPTORS of the database's descriptors, the same number
+    drawn at random (seeded: the same vocabulary on every run) from each image."""
+    image_ids = sorted(image.image_id for image in db.read_all_images())
+    per_image = max(1, VOCABULARY_TRAINING_DESCRIPTORS // len(image_ids))
+    rng = np.random.default_rng(0)
+    samples = []
+    for image_id in image_ids:
+        descriptors = db.read_descriptors(image_id).data
+        samples.append(descriptors[rng.choice(len(descriptors), min(per_image, len(descriptors)),
+                                              replace=False)])
+    training = np.concatenate(samples)
+    build = pycolmap.VisualIndex.BuildOptions()
+    build.num_visual_words = min(VOCABULARY_WORDS, len(training))
+    build.num_iterations = VOCABULARY_ITERATIONS
+    build.num_rounds = 1
+    vocabulary = pycolmap.VisualIndex.create(training.shape[1], VOCABULARY_EMBEDDING_BITS)
+    vocabulary.build(build, pycolmap.FeatureDescriptors(pycolmap.FeatureExtractorType.SIFT,
+                                                        training).to_float())
+    return vocabulary
 
 
 def image_names(database_path: Path) -> list[str]:

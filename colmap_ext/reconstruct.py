@@ -85,6 +85,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--matcher", choices=MATCHERS, default="auto",
                         help="auto: exhaustive up to 100 images, sequential (with loop "
                              "closure) beyond")
+    parser.add_argument("--SequentialMatching.loop_detection", dest="loop_detection",
+                        type=boolean, default=False, metavar="{0,1}",
+                        help="sequential matching: COLMAP's loop detection, for a sequence "
+                             "that revisits a place (off by default, as in COLMAP's "
+                             "sequential matcher)")
+    parser.add_argument("--SequentialMatching.loop_detection_period",
+                        dest="loop_detection_period", type=int, default=10,
+                        help="loop detection for every this many-th image")
+    parser.add_argument("--SequentialMatching.loop_detection_num_images",
+                        dest="loop_detection_num_images", type=int, default=50,
+                        help="loop detection: each such image matched with this many most "
+                             "similar images")
+    parser.add_argument("--vocab_tree_path", default=None,
+                        help="COLMAP's vocabulary tree file for loop detection (default: a "
+                             "vocabulary trained on the images' own descriptors, no download)")
     parser.add_argument("--exact_matching", action="store_true",
                         help="match descriptors by brute force, not by pycolmap's FAISS "
                              "index (approximate, and rarely not the same twice): the same "
@@ -108,7 +123,9 @@ def main(image_path: str, workspace_path: str, camera_model: str | None = None,
          min_num_keypoints: int = DEFAULT_MIN_NUM_KEYPOINTS, matcher: str = "auto",
          exact_matching: bool = False, seed: int | None = None, overwrite: bool = False,
          output_type: str = "BIN", ray_address: str | None = None,
-         domain_size_pooling: bool = False, panorama_features: str | None = None) -> dict:
+         domain_size_pooling: bool = False, panorama_features: str | None = None,
+         loop_detection: bool = False, loop_detection_period: int = 10,
+         loop_detection_num_images: int = 50, vocab_tree_path: str | None = None) -> dict:
     """Run masks (optional), features, matching and the mapper; returns the summary.
     With `ray_address`, features and matching run as tasks on that Ray cluster
     (distributed.py), which is reached before anything is written."""
@@ -129,7 +146,12 @@ def main(image_path: str, workspace_path: str, camera_model: str | None = None,
     names = check_inputs(image_path, workspace, features, segment, matcher, output_type,
                          rig_configs)
     matching = MatchingOptions(matcher=matcher, exact=exact_matching,
-                               seed=secrets.randbits(31) if seed is None else seed)
+                               seed=secrets.randbits(31) if seed is None else seed,
+                               loop_detection=loop_detection,
+                               loop_detection_period=loop_detection_period,
+                               loop_detection_num_images=loop_detection_num_images,
+                               vocab_tree_path=vocab_tree_path)
+    matching.check()
     layout = WORKSPACE if segment is None else SEGMENTED_WORKSPACE
     with replacing(workspace_path, layout, overwrite) as new_workspace, \
             distributed.optional_cluster(ray_address) as cluster:
@@ -164,7 +186,9 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
         "domain_size_pooling": features.domain_size_pooling,
         "panorama_features": features.panorama_features
         if features.camera_model == "EQUIRECTANGULAR" else None, "matcher": matching.matcher,
-        "exact_matching": matching.exact, "seed": matching.seed, "num_images": len(names)}}
+        "exact_matching": matching.exact, "loop_detection": matching.loop_detection,
+        "vocab_tree_path": None if matching.vocab_tree_path is None
+        else str(matching.vocab_tree_path), "seed": matching.seed, "num_images": len(names)}}
 
     if segment is not None:
         features = dataclasses.replace(features, mask_path=str(new_workspace / "masks"))
@@ -182,6 +206,7 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
         feature_summary, matching_summary, summary["ray"] = distributed.extract_and_match(
             cluster, database_path, image_path, names, features, matching, timer)
     summary["features"] = feature_summary.to_dict()
+    timer.seconds["loop_detection"] = matching_summary.loop_detection_seconds
     timer.seconds["matching"] = matching_summary.matching_seconds
     timer.seconds["verification"] = matching_summary.verification_seconds
     summary["matching"] = matching_summary.to_dict()

@@ -214,7 +214,8 @@ def test_sequential_matching_closes_the_loop(scene_database, tmp_path: Path) -> 
     source, _ = scene_database
     database_path = tmp_path / "database.db"
     shutil.copy(source, database_path)
-    summary = match_features(database_path, MatchingOptions(matcher="sequential", overlap=1),
+    summary = match_features(database_path, MatchingOptions(matcher="sequential", overlap=1,
+                                                            loop_detection=False),
                              progress=False)
     assert summary.matcher == "sequential"
     names = ["view0.png", "view1.png", "view2.png", "view3.png", "zother.png"]
@@ -266,10 +267,12 @@ def matched_pairs(database_path: Path, names: list[str]) -> set[tuple[str, str]]
 
 @pytest.fixture(scope="module")
 def long_sequence(tmp_path_factory):
-    """101 images matched by the "auto" matcher with overlap 3: (names, summary, tried pairs)."""
+    """101 images matched by the "auto" matcher with overlap 3, without loop detection
+    (test_loop_detection.py): (names, summary, tried pairs)."""
     database_path = tmp_path_factory.mktemp("long_sequence") / "database.db"
     names = random_feature_database(database_path, 101)
-    summary = match_features(database_path, MatchingOptions(overlap=3), progress=False)
+    summary = match_features(database_path, MatchingOptions(overlap=3, loop_detection=False),
+                             progress=False)
     return names, summary, matched_pairs(database_path, names)
 
 

@@ -133,11 +133,13 @@ def ring_scene(
     radius: float = 3.0,
     seed: int = 0,
     camera: pycolmap.Camera | None = None,
+    turns: float = 1.0,
 ) -> Scene:
     """Ring capture of an object on a pedestal in a textured room, like a turntable sequence.
 
     Cameras are evenly spaced on a circle around the origin (15 deg apart for 24 views),
-    with a little height, aim and roll jitter, all looking at the object.
+    with a little height, aim and roll jitter, all looking at the object. With `turns`
+    above 1 the path goes round again: a sequence that revisits its first views.
     """
     rng = np.random.default_rng(seed)
     quads = room_quads(half_size=6.0, height=4.0, detail=0.05)
@@ -146,7 +148,7 @@ def ring_scene(
     quads += box_quads(np.array([-0.4, 0.3, 0.7]), np.array([0.18, 0.18, 0.8]), -15.0, 0.01)
     quads += box_quads(np.array([1.3, 0.9, 0.0]), np.array([0.4, 0.4, 0.4]), 30.0, 0.015)
     quads += box_quads(np.array([-1.1, -1.2, 0.0]), np.array([0.5, 0.3, 0.3]), -25.0, 0.015)
-    angles = np.linspace(0.0, 2 * np.pi, num_images, endpoint=False)
+    angles = np.linspace(0.0, 2 * np.pi * turns, num_images, endpoint=False)
     heights = 1.5 + rng.uniform(-0.15, 0.15, num_images)
     targets = np.array([0.0, 0.0, 0.5]) + rng.uniform(-0.1, 0.1, (num_images, 3))
     rolls = rng.uniform(-3.0, 3.0, num_images)
