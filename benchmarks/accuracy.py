@@ -204,8 +204,9 @@ def add_common_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--no_demo", action="store_true", help="skip the synthetic demo scene")
 
 
-def build_database(dataset: Dataset, database_path: Path) -> dict:
-    """pycolmap default SIFT and exhaustive matching, one camera with the known intrinsics."""
+def build_database(dataset: Dataset, database_path: Path, sequential_overlap: int | None = None) -> dict:
+    """pycolmap default SIFT and exhaustive matching, one camera with the known intrinsics;
+    with sequential_overlap, sequential matching instead (each image with that many next ones)."""
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = dataset.camera_model
     reader.camera_params = ",".join(repr(p) for p in dataset.camera_params)
@@ -217,7 +218,11 @@ def build_database(dataset: Dataset, database_path: Path) -> dict:
                                   camera_mode=pycolmap.CameraMode.SINGLE, reader_options=reader,
                                   device=pycolmap.Device.cpu)
         extracted = time.perf_counter()
-        pycolmap.match_exhaustive(database_path, device=pycolmap.Device.cpu)
+        if sequential_overlap is None:
+            pycolmap.match_exhaustive(database_path, device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_sequential(database_path, device=pycolmap.Device.cpu,
+                                      pairing_options=pycolmap.SequentialPairingOptions(overlap=sequential_overlap))
     finally:
         pycolmap.logging.minloglevel = previous
     matched = time.perf_counter()

@@ -165,24 +165,16 @@ def prepare_demo(work: Path, seed: int) -> PreparedSet:
 
 def prepare_synthetic(name: str, work: Path, seed: int) -> PreparedSet:
     """A synthetic database with placeholder images (our mapper reads colours from them)."""
-    import numpy as np
-
-    from colmap_ext.synthetic import (ring_scene, scene_points, trajectory_scene,
+    from colmap_ext.synthetic import (points_for_keypoints, ring_scene, scene_points, trajectory_scene,
                                       write_ground_truth, write_synthetic_database)
-    from colmap_ext.synthetic.database import observe
 
     folder = work / name
     if name == "turntable":
         scene = ring_scene(num_images=TURNTABLE_VIEWS, seed=seed)
         points = scene_points(scene, 8000, seed=seed)
     else:
-        size = SYNTHETIC_SIZES[name]
-        scene = trajectory_scene(num_images=size, seed=seed)
-        # Scene points for about 1000 keypoints an image, from a few views' counts.
-        probe = scene_points(scene, 1000 * size, seed=seed)
-        views = np.unique(np.linspace(0, size - 1, min(size, 12)).astype(int))
-        seen = np.mean([len(observe(scene, i, probe).point_ids) for i in views])
-        points = scene_points(scene, max(1, round(1000 * size * 1000 / seen)), seed=seed)
+        scene = trajectory_scene(num_images=SYNTHETIC_SIZES[name], seed=seed)
+        points = points_for_keypoints(scene, 1000, seed=seed)
     if not (folder / "database.db").exists():
         shutil.rmtree(folder, ignore_errors=True)
         (folder / "images").mkdir(parents=True)
@@ -231,19 +223,7 @@ def measure_set(prepared: PreparedSet, mappers: list[str], runs: int, seed: int,
     from colmap_ext.evaluate import evaluate
     from colmap_ext.ground_truth import read_ground_truth
 
-    results: dict[str, dict] = {m: {"runs": []} for m in mappers}
-    models: dict[str, Path] = {}
-    for round_index in range(runs):
-        turn = round_index % len(mappers)
-        for mapper in mappers[turn:] + mappers[:turn]:
-            folder = work / prepared.name / "runs" / mapper
-            shutil.rmtree(folder, ignore_errors=True)
-            folder.mkdir(parents=True)
-            command, models[mapper] = mapper_command(mapper, prepared, folder, seed, end_to_end)
-            run = timed_run(command, folder / "log.txt")
-            print(f"  {prepared.name} {mapper} round {round_index + 1}: {run['time_s']:.1f} s, "
-                  f"{run['peak_mib']:.0f} MiB, exit {run['exit_code']}", file=sys.stderr, flush=True)
-            results[mapper]["runs"].append(run)
+    results, models = run_rounds(prepared, mappers, runs, seed, work, end_to_end)
     truth = read_ground_truth(prepared.ground_truth)
     for mapper, entry in results.items():
         output = models[mapper]
@@ -257,6 +237,26 @@ def measure_set(prepared: PreparedSet, mappers: list[str], runs: int, seed: int,
                      R_err_median_deg=report["R_err_median_deg"],
                      C_err_max=report["C_err_max"])
     return results
+
+
+def run_rounds(prepared: PreparedSet, mappers: list[str], runs: int, seed: int, work: Path,
+               end_to_end: bool = False) -> tuple[dict[str, dict], dict[str, Path]]:
+    """`runs` rounds of every mapper on the set, the order turning each round: per mapper
+    {"runs": [timed_run results]}, and the folder of its last round's models."""
+    results: dict[str, dict] = {m: {"runs": []} for m in mappers}
+    models: dict[str, Path] = {}
+    for round_index in range(runs):
+        turn = round_index % len(mappers)
+        for mapper in mappers[turn:] + mappers[:turn]:
+            folder = work / prepared.name / "runs" / mapper
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir(parents=True)
+            command, models[mapper] = mapper_command(mapper, prepared, folder, seed, end_to_end)
+            run = timed_run(command, folder / "log.txt")
+            print(f"  {prepared.name} {mapper} round {round_index + 1}: {run['time_s']:.1f} s, "
+                  f"{run['peak_mib']:.0f} MiB, exit {run['exit_code']}", file=sys.stderr, flush=True)
+            results[mapper]["runs"].append(run)
+    return results, models
 
 
 def summarize(results: dict[str, dict]) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import tracemalloc
 from pathlib import Path
 
 import cv2
@@ -14,12 +15,22 @@ from hypothesis import strategies as st
 from colmap_ext.synthetic.database import (
     add_outliers,
     observe,
+    points_for_keypoints,
     scene_points,
+    sequential_pairs,
     sift_like,
     write_synthetic_database,
 )
 from colmap_ext.synthetic.render import pixel_grid, render_images, write_ground_truth, write_par_file
-from colmap_ext.synthetic.scene import cast_rays, default_camera, image_rays, ring_scene, trajectory_scene
+from colmap_ext.synthetic.scene import (
+    GridIndex,
+    cast_rays,
+    default_camera,
+    driving_scene,
+    image_rays,
+    ring_scene,
+    trajectory_scene,
+)
 
 
 def opencv_project(params: np.ndarray, points_cam: np.ndarray) -> np.ndarray:
@@ -188,6 +199,139 @@ def test_trajectory_views_overlap_only_locally() -> None:
     assert all(len(s) > 100 for s in seen)
     assert len(seen[0] & seen[1]) > 0.5 * len(seen[0])
     assert not seen[0] & seen[29]
+
+
+def centres(scene) -> np.ndarray:
+    return np.array([pose.inverse().translation for pose in scene.cams_from_world])
+
+
+def view_directions(scene) -> np.ndarray:
+    """The cameras' optical axes (camera z) in the world."""
+    return np.array([pose.rotation.matrix()[2] for pose in scene.cams_from_world])
+
+
+def angles_deg(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    cosines = np.sum(a * b, axis=1) / np.linalg.norm(a, axis=1) / np.linalg.norm(b, axis=1)
+    return np.rad2deg(np.arccos(np.clip(cosines, -1.0, 1.0)))
+
+
+@pytest.fixture(scope="module")
+def drive():
+    return driving_scene(400, seed=1, stop_every=150, stop_frames=10)
+
+
+def test_driving_camera_looks_where_it_goes(drive) -> None:
+    c = centres(drive)
+    moving = np.flatnonzero(np.r_[True, np.linalg.norm(np.diff(c, axis=0), axis=1) > 0])
+    travel = c[moving[2:]] - c[moving[:-2]]  # central differences over the places
+    heading = np.rad2deg(np.arctan2(travel[:, 1], travel[:, 0]))
+    off_axis = np.abs((heading + 45) % 90 - 45)  # the streets run along x and y
+    straight = off_axis < 5.0
+    straight[1:-1] &= straight[:-2] & straight[2:]  # not next to a corner, where the differences cut it
+    assert straight.mean() > 0.75
+    views = view_directions(drive)[moving[1:-1]]
+    assert angles_deg(views[straight], travel[straight]).max() < 3.0
+
+
+def test_driving_turns_are_sharp_corners(drive) -> None:
+    c = centres(drive)
+    places = c[np.r_[True, np.linalg.norm(np.diff(c, axis=0), axis=1) > 0]]
+    steps = np.diff(places[:, :2], axis=0)
+    turned = np.rad2deg(np.diff(np.unwrap(np.arctan2(steps[:, 1], steps[:, 0]))))
+    turning = np.abs(turned) > 5.0
+    runs = np.split(turned, np.flatnonzero(np.diff(turning.astype(int)))+ 1)
+    corners = [run for run in runs if np.abs(run).min() > 5.0]
+    assert len(corners) >= 4  # 400 m, a corner every 60 m or so
+    for run in corners:
+        assert len(run) <= 8 and abs(run.sum()) == pytest.approx(90.0, abs=6.0)
+    assert [np.sign(run.sum()) for run in corners][:4] == [1, -1, 1, -1]  # left, right: no loop
+
+
+def test_driving_stops_stand_still_and_the_rest_moves_a_step(drive) -> None:
+    c = centres(drive)
+    baselines = np.linalg.norm(np.diff(c, axis=0), axis=1)
+    standing = np.flatnonzero(baselines == 0.0) + 1
+    np.testing.assert_array_equal(standing, [*range(151, 160), *range(301, 310)])
+    for first in (150, 300):  # one pose through the stop
+        for frame in range(first + 1, first + 10):
+            assert drive.cams_from_world[frame].rotation.angle_to(drive.cams_from_world[first].rotation) == 0.0
+    moving = baselines[baselines > 0]  # a step; a little more or less round a corner's outside or inside
+    assert np.median(moving) == pytest.approx(1.0, abs=0.01) and np.all((moving > 0.8) & (moving < 1.2))
+
+
+def test_driving_loop_comes_back_to_its_start() -> None:
+    scene = driving_scene(300, seed=2, loop=True)
+    c = centres(scene)
+    assert 0.5 < np.linalg.norm(c[-1] - c[0]) < 1.5
+    assert angles_deg(view_directions(scene)[:1], view_directions(scene)[-1:])[0] < 5.0
+    assert np.linalg.norm(c - c[0], axis=1).max() > 50.0  # it went somewhere
+    points = points_for_keypoints(scene, 1000, seed=2, max_distance=40.0)
+    first, last = (set(observe(scene, i, points, 40.0).point_ids.tolist()) for i in (0, scene.num_images - 1))
+    assert len(first & last) > 0.5 * len(first)
+    middle = set(observe(scene, scene.num_images // 2, points, 40.0).point_ids.tolist())
+    assert not first & middle
+
+
+def test_drive_database_has_the_keypoints_and_pairs_asked_for(tmp_path: Path) -> None:
+    scene = driving_scene(120, seed=3, stop_every=50, stop_frames=5)
+    points = points_for_keypoints(scene, 1000, seed=3, max_distance=40.0)
+    truth = write_synthetic_database(tmp_path / "drive.db", scene, points, max_distance=40.0, seed=3,
+                                     two_view_geometries=True, pairs=sequential_pairs(scene.num_images, 10))
+    keypoints = np.array([len(ids) for ids in truth.point_ids])
+    assert keypoints.mean() == pytest.approx(1000, rel=0.1) and keypoints.min() > 200
+    depths = np.concatenate([observe(scene, i, points, 40.0).depths for i in range(0, 120, 10)])
+    assert depths.max() <= 40.0 and np.percentile(depths, 5) > 4.0
+    index = {image_id: k for k, image_id in enumerate(truth.image_ids)}
+    gaps = [index[j] - index[i] for i, j in truth.matches]
+    assert max(gaps) == 10 and len(truth.matches) > 0.9 * 10 * scene.num_images
+    with pycolmap.Database.open(tmp_path / "drive.db") as db:
+        standing = db.read_two_view_geometry(truth.image_ids[50], truth.image_ids[53])
+        moving = db.read_two_view_geometry(truth.image_ids[40], truth.image_ids[43])
+    assert standing.config == pycolmap.TwoViewGeometryConfiguration.PANORAMIC
+    assert np.linalg.norm(standing.cam2_from_cam1.translation) == 0.0
+    assert moving.config == pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+
+
+def test_sequential_pairs_wrap_round_a_loop() -> None:
+    assert sequential_pairs(5, 2) == {(0, 1), (0, 2), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4)}
+    assert sequential_pairs(5, 2, closed=True) == sequential_pairs(5, 2) | {(0, 3), (0, 4), (1, 4)}
+
+
+def test_nearby_points_are_found_without_scanning() -> None:
+    rng = np.random.default_rng(5)
+    xy = rng.uniform(-300, 300, (20000, 2))
+    grid = GridIndex(xy, 40.0)
+    for center in rng.uniform(-350, 350, (20, 2)):
+        found = grid.near(center, 55.0)
+        within = np.flatnonzero(np.abs(xy - center).max(axis=1) <= 55.0)
+        assert np.all(np.diff(found) > 0) and set(within) <= set(found)
+        assert len(found) < 0.1 * len(xy)
+
+
+def test_observing_near_the_camera_sees_what_observing_all_sees(drive) -> None:
+    points = scene_points(drive, 60000, seed=6)
+    grid = GridIndex(points[:, :2], 40.0)
+    for image_index in (0, 57, 155, 399):
+        everything = observe(drive, image_index, points, 40.0)
+        nearby = observe(drive, image_index, points, 40.0, grid)
+        assert len(everything.point_ids) > 100
+        np.testing.assert_array_equal(nearby.point_ids, everything.point_ids)
+
+
+def test_a_long_drive_database_takes_memory_in_proportion(tmp_path: Path) -> None:
+    """2,000 frames of 1,000 keypoints: the generator's arrays (the ground truth it returns
+    included) stay below 400 KiB a frame, about 2/3 of the database's size (matching every
+    pair of views that share points, or scanning all points per view, would not)."""
+    scene = driving_scene(2000, seed=0)
+    tracemalloc.start()
+    try:
+        points = points_for_keypoints(scene, 1000, seed=0, max_distance=40.0)
+        write_synthetic_database(tmp_path / "drive.db", scene, points, max_distance=40.0,
+                                 two_view_geometries=True, pairs=sequential_pairs(scene.num_images, 10))
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 400 * 1024 * scene.num_images
 
 
 def test_colmap_mapper_reconstructs_a_synthetic_database(tmp_path: Path) -> None:

@@ -1,30 +1,40 @@
 """Synthetic data with known ground truth: scenes, rendered images, and COLMAP databases.
 
-- `ring_scene`, `trajectory_scene`: a calibrated camera, known poses, textured quads.
+- `ring_scene`, `trajectory_scene`, `driving_scene`: a calibrated camera, known poses, textured quads.
 - `render_images`: PNG views of a scene, ray-cast through the distorted camera model.
 - `write_par_file`, `write_ground_truth`: the true poses as Middlebury `*_par.txt` / COLMAP model.
-- `scene_points`, `write_synthetic_database`: a COLMAP database of projected points
-  (keypoints, descriptors, matches with outliers), without images.
+- `scene_points`, `points_for_keypoints`, `write_synthetic_database`: a COLMAP database of
+  projected points (keypoints, descriptors, matches with outliers), without images;
+  `sequential_pairs` restricts its matches to a sequence's neighbours.
 """
 
-from colmap_ext.synthetic.database import SyntheticDatabase, scene_points, write_synthetic_database
+from colmap_ext.synthetic.database import (
+    SyntheticDatabase,
+    points_for_keypoints,
+    scene_points,
+    sequential_pairs,
+    write_synthetic_database,
+)
 from colmap_ext.synthetic.render import (
     ground_truth_reconstruction,
     render_images,
     write_ground_truth,
     write_par_file,
 )
-from colmap_ext.synthetic.scene import Quad, Scene, default_camera, ring_scene, trajectory_scene
+from colmap_ext.synthetic.scene import Quad, Scene, default_camera, driving_scene, ring_scene, trajectory_scene
 
 __all__ = [
     "Quad",
     "Scene",
     "SyntheticDatabase",
     "default_camera",
+    "driving_scene",
     "ground_truth_reconstruction",
+    "points_for_keypoints",
     "render_images",
     "ring_scene",
     "scene_points",
+    "sequential_pairs",
     "trajectory_scene",
     "write_ground_truth",
     "write_par_file",

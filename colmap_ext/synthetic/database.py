@@ -8,17 +8,20 @@ ground truth says which 3D point every keypoint sees, so a mapper's tracks can b
 
 from __future__ import annotations
 
+from collections.abc import Collection, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
-from colmap_ext.synthetic.scene import Scene, cast_rays
+from colmap_ext.synthetic.scene import GridIndex, Scene, cast_rays
 
 DESCRIPTOR_NOISE = 0.25  # L2 norm of the per-observation perturbation of a unit descriptor
 MIN_NUM_INLIERS = 15  # COLMAP's TwoViewGeometryOptions.min_num_inliers
 NEAR = 0.05  # metres: nearer points are not observed
+SAME_CENTRE = 1e-9  # metres: views whose centres are nearer share one (a stop)
+PROBE_POINTS = 2_000_000  # at most this many points sampled to count what views see
 
 
 @dataclass
@@ -58,6 +61,30 @@ def scene_points(scene: Scene, num_points: int, seed: int = 0) -> np.ndarray:
     return origins + a * edges_u + b * edges_v
 
 
+def points_for_keypoints(
+    scene: Scene, keypoints_per_image: int, seed: int = 0, max_distance: float | None = None
+) -> np.ndarray:
+    """Scene points (scene_points) so many that a view sees about keypoints_per_image of them:
+    their number is scaled from what a dozen views spread over the scene see of a probe."""
+    size = scene.num_images
+    probe = scene_points(scene, min(keypoints_per_image * size, PROBE_POINTS), seed=seed)
+    grid = None if max_distance is None else GridIndex(probe[:, :2], max_distance)
+    views = np.unique(np.linspace(0, size - 1, min(size, 12)).astype(int))
+    seen = np.mean([len(observe(scene, i, probe, max_distance, grid).point_ids) for i in views])
+    return scene_points(scene, max(1, round(len(probe) * keypoints_per_image / seen)), seed=seed)
+
+
+def sequential_pairs(num_images: int, overlap: int, closed: bool = False) -> set[tuple[int, int]]:
+    """Pairs (i, j), i < j, of each view with the next `overlap` ones, as sequential matching
+    pairs frames; closed, the last views pair with the first ones too (a loop found again)."""
+    pairs = set()
+    for i in range(num_images):
+        for j in range(i + 1, i + overlap + 1):
+            if j < num_images or (closed and j - num_images < i):
+                pairs.add(tuple(sorted((i, j % num_images))))
+    return pairs
+
+
 def normalised_bounds(camera: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
     """Bounding box (plus 1 %) of the image unprojected to normalised coordinates: a cheap visibility pre-test."""
     grid = np.meshgrid(np.linspace(0.0, camera.width, 33), np.linspace(0.0, camera.height, 33))
@@ -67,13 +94,26 @@ def normalised_bounds(camera: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
 
 
 def observe(
-    scene: Scene, image_index: int, points3D: np.ndarray, max_distance: float | None = None
+    scene: Scene,
+    image_index: int,
+    points3D: np.ndarray,
+    max_distance: float | None = None,
+    grid: GridIndex | None = None,
 ) -> Observations:
-    """Points visible in one view: in front, projecting inside the image, not hidden by a quad, within max_distance."""
+    """Points visible in one view: in front, projecting inside the image, not hidden by a quad, within max_distance.
+
+    With a max_distance and `grid` (the points' x, y by GridIndex), only the points in the
+    cells near the camera are looked at, so a view costs the same however large the scene.
+    """
     pose = scene.cams_from_world[image_index]
     camera = scene.camera
-    cam = pose.rotation.matrix() @ points3D.T + pose.translation[:, None]
     lo, hi = normalised_bounds(camera)
+    if grid is not None and max_distance is not None:
+        longest_ray = np.sqrt(np.max(np.square([lo, hi]).sum(axis=1)) + 1.0)  # per unit of depth
+        near_camera = grid.near(pose.inverse().translation[:2], max_distance * longest_ray)
+    else:
+        near_camera = np.arange(len(points3D))
+    cam = pose.rotation.matrix() @ points3D[near_camera].T + pose.translation[:, None]
     x, y, z = cam
     in_view = (z > NEAR) & (z <= (np.inf if max_distance is None else max_distance))
     in_view &= (x >= lo[0] * z) & (x <= hi[0] * z) & (y >= lo[1] * z) & (y <= hi[1] * z)
@@ -82,9 +122,16 @@ def observe(
     rays = cam[:, :2] / cam[:, 2:]
     pixels = camera.img_from_cam(cam)
     inside = np.all((pixels >= 0) & (pixels < [camera.width, camera.height]), axis=1)
-    candidates, cam, rays, pixels = candidates[inside], cam[inside], rays[inside], pixels[inside]
-    hits = cast_rays(scene, pose, rays[:, None, :], near=NEAR)
-    unoccluded = hits.depth[:, 0] >= cam[:, 2] * (1 - 1e-4) - 1e-6
+    candidates, cam, rays, pixels = near_camera[candidates[inside]], cam[inside], rays[inside], pixels[inside]
+    if not len(candidates):
+        return Observations(candidates, pixels, cam[:, 2])
+    # One row of rays sorted by x: cast_rays then tests each quad on the columns its
+    # projection spans only.
+    by_x = np.argsort(rays[:, 0], kind="stable")
+    hits = cast_rays(scene, pose, rays[by_x][None], near=NEAR, far=float(cam[:, 2].max()))
+    depths = np.empty(len(rays), np.float32)
+    depths[by_x] = hits.depth[0]
+    unoccluded = depths >= cam[:, 2] * (1 - 1e-4) - 1e-6
     return Observations(candidates[unoccluded], pixels[unoccluded], cam[unoccluded, 2])
 
 
@@ -128,18 +175,22 @@ def affine_shapes(scales: np.ndarray, orientations: np.ndarray) -> np.ndarray:
     return np.stack([c, -s, s, c], axis=1)
 
 
-def view_pairs(point_ids: list[np.ndarray], num_points: int) -> dict[tuple[int, int], np.ndarray]:
-    """True matches (keypoint index pairs) of every pair of views i < j that share a point.
+def view_pairs(
+    point_ids: list[np.ndarray], num_points: int, wanted: Collection[tuple[int, int]] | None = None
+) -> Iterator[tuple[tuple[int, int], np.ndarray]]:
+    """Yields the true matches (keypoint index pairs) of every pair of views i < j that share
+    a point (only the pairs in `wanted`, if given), by i then j.
 
     Walks the point -> observations index once per view, so the cost grows with the
-    number of observations times the track length, not with the number of view pairs.
+    number of observations times the track length, not with the number of view pairs;
+    one view's pairs are held at a time.
     """
     views = np.concatenate([np.full(len(p), i) for i, p in enumerate(point_ids)])
     keypoints = np.concatenate([np.arange(len(p)) for p in point_ids])
     points = np.concatenate(point_ids)
     order = np.argsort(points, kind="stable")
     starts = np.searchsorted(points[order], np.arange(num_points + 1))
-    pairs = {}
+    wanted = None if wanted is None else set(wanted)
     for i, ids in enumerate(point_ids):
         lengths = starts[ids + 1] - starts[ids]
         offsets = np.arange(lengths.sum()) - np.repeat(np.cumsum(lengths) - lengths, lengths)
@@ -150,8 +201,9 @@ def view_pairs(point_ids: list[np.ndarray], num_points: int) -> dict[tuple[int, 
         by_view = np.argsort(views[rows], kind="stable")
         others, splits = np.unique(views[rows][by_view], return_index=True)
         for j, chunk in zip(others, np.split(by_view, splits[1:])):
-            pairs[(i, int(j))] = np.stack([keypoints_i[chunk], keypoints[rows[chunk]]], axis=1)
-    return pairs
+            if wanted is not None and (i, int(j)) not in wanted:
+                continue
+            yield (i, int(j)), np.stack([keypoints_i[chunk], keypoints[rows[chunk]]], axis=1)
 
 
 def add_outliers(
@@ -181,15 +233,23 @@ def add_outliers(
 
 
 def two_view_geometry(scene: Scene, i: int, j: int, inlier_matches: np.ndarray) -> pycolmap.TwoViewGeometry:
-    """Calibrated two-view geometry of views i, j from the true poses: E = [t]x R, x2^T E x1 = 0."""
+    """Two-view geometry of views i, j from the true poses: CALIBRATED, E = [t]x R (x2^T E x1 = 0);
+    PANORAMIC, H = K R K^-1, where the views share their centre (a stop), as COLMAP finds them."""
     cam2_from_cam1 = scene.cams_from_world[j] * scene.cams_from_world[i].inverse()
     t = cam2_from_cam1.translation
-    essential = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ cam2_from_cam1.rotation.matrix()
-    k_inv = np.linalg.inv(scene.camera.calibration_matrix())
+    rotation = cam2_from_cam1.rotation.matrix()
+    k = scene.camera.calibration_matrix()
+    k_inv = np.linalg.inv(k)
     geometry = pycolmap.TwoViewGeometry()
-    geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
-    geometry.E = essential
-    geometry.F = k_inv.T @ essential @ k_inv
+    if np.linalg.norm(t) < SAME_CENTRE:
+        geometry.config = pycolmap.TwoViewGeometryConfiguration.PANORAMIC
+        geometry.H = k @ rotation @ k_inv
+        cam2_from_cam1 = pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), np.zeros(3))
+    else:
+        essential = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ rotation
+        geometry.config = pycolmap.TwoViewGeometryConfiguration.CALIBRATED
+        geometry.E = essential
+        geometry.F = k_inv.T @ essential @ k_inv
     geometry.cam2_from_cam1 = cam2_from_cam1
     geometry.inlier_matches = inlier_matches.astype(np.uint32)
     return geometry
@@ -245,14 +305,18 @@ def write_synthetic_database(
     max_distance: float | None = None,
     seed: int = 0,
     two_view_geometries: bool = False,
+    pairs: Collection[tuple[int, int]] | None = None,
 ) -> SyntheticDatabase:
     """Write a new COLMAP database of the scene's views observing points3D; returns the ground truth.
 
     Per view: keypoints and descriptors (see write_features) of the points it sees, in
-    shuffled order; points seen by fewer than min_track views are left out. Per pair of views sharing points: matches with
+    shuffled order; points seen by fewer than min_track views are left out. Per pair of views sharing points
+    (of `pairs`, views i < j by scene index, if given): matches with
     a share `outlier_ratio` of wrong ones. With two_view_geometries, also the verified
-    geometry (CALIBRATED, true poses, inliers = the true matches) of pairs with at least
-    15 true matches, so COLMAP's mapper can run on the database directly.
+    geometry (CALIBRATED, true poses, inliers = the true matches; PANORAMIC between views
+    from one place) of pairs with at least 15 true matches, so COLMAP's mapper can run on
+    the database directly. With max_distance, a view only looks at the points near it,
+    so the time grows with the number of views, not views times points.
     """
     path = Path(path)
     if path.exists():
@@ -262,7 +326,8 @@ def write_synthetic_database(
     rng = np.random.default_rng(seed)
     points3D = np.asarray(points3D, np.float64)
     appearance = PointAppearance.random(len(points3D), rng)
-    observations = [observe(scene, i, points3D, max_distance) for i in range(scene.num_images)]
+    grid = None if max_distance is None else GridIndex(points3D[:, :2], max_distance)
+    observations = [observe(scene, i, points3D, max_distance, grid) for i in range(scene.num_images)]
     observations = keep_tracks(observations, len(points3D), min_track)
     orders = [rng.permutation(len(o.point_ids)) for o in observations]
     observations = [Observations(o.point_ids[k], o.pixels[k], o.depths[k]) for o, k in zip(observations, orders)]
@@ -272,7 +337,7 @@ def write_synthetic_database(
         for image_id, seen in zip(image_ids, observations):
             write_features(db, image_id, seen, appearance, scene.camera, noise_px, rng)
         matches, inlier_matches = {}, {}
-        for (i, j), true_matches in view_pairs(point_ids, len(points3D)).items():
+        for (i, j), true_matches in view_pairs(point_ids, len(points3D), pairs):
             pair = (image_ids[i], image_ids[j])
             counts = (len(point_ids[i]), len(point_ids[j]))
             matches[pair], inliers = add_outliers(true_matches, counts, outlier_ratio, rng)

@@ -61,6 +61,48 @@ class Scene:
         """Corners of all quads, Qx4x3 (world frame), for culling."""
         return np.stack([q.corners for q in self.quads])
 
+    @cached_property
+    def quad_grid(self) -> GridIndex:
+        """The quads' centres by cells of the ground plane, for quads_near."""
+        return GridIndex(self.quad_corners.mean(axis=1)[:, :2], QUAD_GRID_CELL)
+
+    def quads_near(self, center: np.ndarray, distance: float) -> np.ndarray:
+        """Indices (sorted) of the quads that may come within `distance` of `center` (a superset)."""
+        half_diagonals = np.linalg.norm(self.quad_corners[:, 2] - self.quad_corners[:, 0], axis=1) / 2
+        return self.quad_grid.near(np.asarray(center)[:2], distance + half_diagonals.max())
+
+
+QUAD_GRID_CELL = 16.0  # metres: cell of Scene.quad_grid
+
+
+class GridIndex:
+    """Items at 2D places (points or quad centres on the ground plane) by square cells, so
+    that what lies near one place is found without scanning all of them."""
+
+    def __init__(self, xy: np.ndarray, cell: float) -> None:
+        self.cell = cell
+        keys = np.floor(np.asarray(xy) / cell).astype(np.int64)
+        self.low = keys.min(axis=0) if len(keys) else np.zeros(2, np.int64)
+        self.high = keys.max(axis=0) if len(keys) else np.full(2, -1, np.int64)
+        flat = self._flat(keys)
+        self.order = np.argsort(flat, kind="stable")
+        self.sorted_keys = flat[self.order]
+
+    def _flat(self, keys: np.ndarray) -> np.ndarray:
+        return (keys[:, 0] - self.low[0]) * (self.high[1] - self.low[1] + 1) + keys[:, 1] - self.low[1]
+
+    def near(self, center: np.ndarray, radius: float) -> np.ndarray:
+        """Indices (sorted) of the items in the cells that meet the square of half-side `radius` around center."""
+        first = np.maximum(np.floor((center - radius) / self.cell).astype(np.int64), self.low)
+        last = np.minimum(np.floor((center + radius) / self.cell).astype(np.int64), self.high)
+        if np.any(last < first):
+            return np.zeros(0, np.int64)
+        cells = np.stack(np.meshgrid(*(np.arange(a, b + 1) for a, b in zip(first, last)), indexing="ij"), -1)
+        flat = self._flat(cells.reshape(-1, 2))
+        starts = np.searchsorted(self.sorted_keys, flat, side="left")
+        ends = np.searchsorted(self.sorted_keys, flat, side="right")
+        return np.sort(np.concatenate([self.order[a:b] for a, b in zip(starts, ends)]))
+
 
 @dataclass
 class RayHits:
@@ -160,14 +202,27 @@ def ring_scene(
 
 def facade_quads(length: float, depth: float, rng: np.random.Generator) -> list[Quad]:
     """A street: facade panels in the plane y = depth, with protruding boxes, and the pavement in front."""
-    panel = 4.0
-    starts = np.arange(-8.0, length + 8.0, panel)
+    return facade_panels(np.arange(-8.0, length + 8.0, 4.0), 4.0, depth, -4.0, rng)
+
+
+def facade_panels(
+    starts: np.ndarray, width: float, depth: float, pavement_from: float, rng: np.random.Generator
+) -> list[Quad]:
+    """Facade panels [x, x + width] in the plane y = depth, 8 m high, each with a protruding box
+    and the pavement in front of it, from y = pavement_from to the facade."""
     quads = []
     for x in starts:
-        quads.append(Quad(np.array([x, depth, 0.0]), np.array([panel, 0, 0.0]), np.array([0, 0, 8.0]), 0.03))
-        quads.append(Quad(np.array([x, -4.0, 0.0]), np.array([panel, 0, 0.0]), np.array([0, depth + 4.0, 0.0]), 0.03))
+        quads.append(Quad(np.array([x, depth, 0.0]), np.array([width, 0, 0.0]), np.array([0, 0, 8.0]), 0.03))
+        quads.append(
+            Quad(
+                np.array([x, pavement_from, 0.0]),
+                np.array([width, 0, 0.0]),
+                np.array([0, depth - pavement_from, 0.0]),
+                0.03,
+            )
+        )
         size = rng.uniform([0.6, 0.5, 0.6], [2.0, 1.5, 3.0])
-        center = np.array([x + rng.uniform(1.0, panel - 1.0), depth - size[1] / 2, rng.choice([0.0, 1.0, 2.0])])
+        center = np.array([x + rng.uniform(1.0, width - 1.0), depth - size[1] / 2, rng.choice([0.0, 1.0, 2.0])])
         quads += box_quads(center, size, 0.0, 0.02)
     return quads
 
@@ -200,6 +255,192 @@ def trajectory_scene(
     return Scene(camera or default_camera(), poses, names, quads)
 
 
+def driving_scene(
+    num_images: int = 500,
+    seed: int = 0,
+    camera: pycolmap.Camera | None = None,
+    *,
+    step: float = 1.0,
+    street_half_width: float = 8.0,
+    block_length: float | None = 60.0,
+    turn_frames: int = 6,
+    stop_every: int = 300,
+    stop_frames: int = 10,
+    loop: bool = False,
+) -> Scene:
+    """A drive down streets between facades, the camera looking forward along its path.
+
+    The camera (1.65 m above a textured road) advances `step` metres a frame, wandering a
+    little across its lane, and looks along its direction of travel (within about 2 deg:
+    yaw and roll jitter, a slight downward pitch). The streets are 2 * street_half_width
+    wide, between 8 m high facades with protruding boxes, built only along the path, so the
+    scene grows with num_images. With block_length, the path turns 90 deg, alternately left
+    and right, every block_length (+-20 %) metres, each corner taken over turn_frames
+    frames (a staircase that never comes back); with None, one straight street. Every
+    stop_every frames the camera stands still for stop_frames frames (one pose; 0: no stops).
+    With loop, the path goes round a square block instead, and its last frame stands one
+    step behind the first, looking the same way.
+    """
+    radius = 2 * turn_frames * step / np.pi  # a quarter circle of turn_frames steps
+    shortest_block = 2 * street_half_width + 4.0
+    if radius > street_half_width - 1.0:
+        raise ValueError(f"turns of {turn_frames} steps of {step} m do not fit a street {2 * street_half_width} m wide")
+    if block_length is not None and 0.8 * block_length < shortest_block:
+        raise ValueError(f"block_length must be at least {shortest_block / 0.8:.1f} m, got {block_length}")
+    if stop_every > 0 and not 0 <= stop_frames <= stop_every:
+        raise ValueError(f"stop_frames must be in [0, stop_every], got {stop_frames}")
+    rng = np.random.default_rng(seed)
+    places = stop_places(num_images, stop_every, stop_frames)
+    num_places = int(places[-1]) + 1
+    if loop:
+        corner_saving = (2 - np.pi / 2) * radius  # a rounded corner is shorter than the sharp one
+        side = (num_places * step + 4 * corner_saving) / 4
+        if side < shortest_block:
+            raise ValueError(f"a loop of {num_places} places of {step} m is too short for its street")
+        vertices = side * np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+        path = rounded_path(vertices, radius, closed=True)
+        length = path_lengths(path)[-1]
+        s = np.arange(num_places) * (length / num_places)
+    else:
+        ahead = 5 * street_half_width  # street beyond the last frame, for it to look down
+        vertices = street_corners((num_places - 1) * step + ahead, block_length, radius, rng)
+        path = rounded_path(vertices, radius, closed=False)
+        length = path_lengths(path)[-1]
+        s = np.arange(num_places) * step
+    position, tangent = along_path(path, s)
+    lateral, height = (lane_wander(s, length, wavelength, amplitude, rng)
+                       for wavelength, amplitude in ((70.0, 0.5), (23.0, 0.05)))
+    normal = np.stack([-tangent[:, 1], tangent[:, 0]], axis=1)
+    centers = np.column_stack([position + lateral[0][:, None] * normal, 1.65 + height[0]])
+    travel = np.column_stack([tangent + lateral[1][:, None] * normal, height[1]])
+    heading = np.arctan2(travel[:, 1], travel[:, 0]) + np.deg2rad(rng.uniform(-1.0, 1.0, num_places))
+    pitch = np.arcsin(travel[:, 2] / np.linalg.norm(travel, axis=1)) + np.deg2rad(
+        rng.uniform(-2.0, -1.0, num_places)
+    )
+    forward = np.stack([np.cos(pitch) * np.cos(heading), np.cos(pitch) * np.sin(heading), np.sin(pitch)], axis=1)
+    rolls = rng.uniform(-1.0, 1.0, num_places)
+    poses = [look_at(c, c + f, r) for c, f, r in zip(centers, forward, rolls)]
+    quads = street_quads(vertices, street_half_width, loop, rng)
+    names = [f"drive{i:05d}.png" for i in range(num_images)]
+    return Scene(camera or default_camera(), [poses[p] for p in places], names, quads)
+
+
+def stop_places(num_images: int, stop_every: int, stop_frames: int) -> np.ndarray:
+    """Per frame, the index of its place along the path: frame k * stop_every (k >= 1) and the
+    stop_frames - 1 frames after it share one place."""
+    frames = np.arange(num_images)
+    standing = np.zeros(num_images, bool)
+    if stop_every > 0:
+        standing = (frames > stop_every) & (frames % stop_every >= 1) & (frames % stop_every < stop_frames)
+    return np.cumsum(~standing) - 1
+
+
+def street_corners(length: float, block_length: float | None, radius: float, rng: np.random.Generator) -> np.ndarray:
+    """Corners (x, y) of a path along +x at least `length` long once its corners are rounded
+    by `radius`: one street, or blocks of block_length (+-20 %) turning left, right, left..."""
+    if block_length is None:
+        return np.array([[0.0, 0.0], [length, 0.0]])
+    corner_saving = (2 - np.pi / 2) * radius
+    vertices = [np.zeros(2)]
+    directions = np.array([[1.0, 0.0], [0.0, 1.0]])
+    while len(vertices) < 2 or sum(np.linalg.norm(np.diff(vertices, axis=0), axis=1)) - (
+        len(vertices) - 2
+    ) * corner_saving < length:
+        block = block_length * rng.uniform(0.8, 1.2)
+        vertices.append(vertices[-1] + block * directions[(len(vertices) - 1) % 2])
+    return np.array(vertices)
+
+
+def rounded_path(vertices: np.ndarray, radius: float, closed: bool) -> np.ndarray:
+    """A polyline (Kx2) through `vertices`, each 90 deg corner replaced by a quarter circle of
+    `radius` (in 2 deg chords). A closed path starts and ends half-way along its first street."""
+    count = len(vertices)
+    corners = [*range(1, count), 0] if closed else range(1, count - 1)
+    angles = np.linspace(0.0, np.pi / 2, 46)[:, None]
+    start = (vertices[0] + vertices[1]) / 2 if closed else vertices[0]
+    points = [start[None]]
+    for i in corners:
+        into = vertices[i] - vertices[i - 1]
+        out = vertices[(i + 1) % count] - vertices[i]
+        into, out = into / np.linalg.norm(into), out / np.linalg.norm(out)
+        center = vertices[i] - radius * into + radius * out
+        points.append(center - np.cos(angles) * radius * out + np.sin(angles) * radius * into)
+    points.append((start if closed else vertices[-1])[None])
+    return np.concatenate(points)
+
+
+def path_lengths(path: np.ndarray) -> np.ndarray:
+    """Distance along a polyline to each of its points."""
+    return np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(path, axis=0), axis=1))])
+
+
+def along_path(path: np.ndarray, s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (Nx2) and unit tangents (Nx2) at distances s along a polyline."""
+    lengths = path_lengths(path)
+    position = np.stack([np.interp(s, lengths, path[:, k]) for k in range(2)], axis=1)
+    segment = np.clip(np.searchsorted(lengths, s, side="right") - 1, 0, len(path) - 2)
+    tangent = path[segment + 1] - path[segment]
+    return position, tangent / np.linalg.norm(tangent, axis=1, keepdims=True)
+
+
+def lane_wander(
+    s: np.ndarray, length: float, wavelength: float, amplitude: float, rng: np.random.Generator
+) -> tuple[np.ndarray, np.ndarray]:
+    """A smooth offset along the path and its derivative; whole periods over `length`, so a closed path closes."""
+    wavelength = length / max(1, round(length / wavelength))
+    phase = rng.uniform(0, 2 * np.pi)
+    angle = 2 * np.pi * s / wavelength + phase
+    return amplitude * np.sin(angle), amplitude * 2 * np.pi / wavelength * np.cos(angle)
+
+
+def street_quads(vertices: np.ndarray, half_width: float, closed: bool, rng: np.random.Generator) -> list[Quad]:
+    """Facades (facade_panels) on both sides of the streets between the corners, with the road.
+
+    At a corner the outer facades run on to meet, the inner ones stop where the crossing
+    street begins, and a road patch fills the inner corner of the crossing.
+    """
+    count = len(vertices)
+    segments = range(count) if closed else range(count - 1)
+    directions = np.array([vertices[(i + 1) % count] - vertices[i] for i in segments])
+    lengths = np.linalg.norm(directions, axis=1)
+    directions /= lengths[:, None]
+
+    def turn(i: int) -> float:
+        """+1 where the path turns left at the start of segment i, -1 right, 0 at an open end."""
+        if not closed and i in (0, count - 1):
+            return 0.0
+        before, after = directions[i - 1], directions[i % len(directions)]
+        return float(np.sign(before[0] * after[1] - before[1] * after[0]))
+
+    quads = []
+    for i, (direction, length) in enumerate(zip(directions, lengths)):
+        normal = np.array([-direction[1], direction[0]])
+        for side in (1.0, -1.0):  # left, right
+            # Where this side's facade starts and ends along the segment: short of the
+            # crossing street on the inside of a corner, on to the far facade outside.
+            start = side * turn(i) * half_width if turn(i) else -half_width
+            end = length - side * turn(i + 1) * half_width
+            origin, along = vertices[i], direction
+            if side < 0:  # the street seen from its other end: its right side is on the left
+                origin, along, start, end = vertices[i] + length * direction, -direction, length - end, length - start
+            panels = int(np.ceil((end - start) / 4.0))
+            width = (end - start) / panels
+            quads += placed(facade_panels(start + width * np.arange(panels), width, half_width, 0.0, rng), origin, along)
+        if turn(i + 1):
+            corner = vertices[(i + 1) % count]
+            quads.append(Quad(np.append(corner - half_width * direction, 0.0), np.append(half_width * direction, 0.0),
+                              np.append(turn(i + 1) * half_width * normal, 0.0), 0.03))
+    return quads
+
+
+def placed(quads: list[Quad], origin: np.ndarray, direction: np.ndarray) -> list[Quad]:
+    """Quads moved from a local frame (x along the street, y to its left, z up) to the world:
+    the local origin at `origin` (x, y), local x along the unit vector `direction`."""
+    rotation = np.array([[direction[0], -direction[1], 0.0], [direction[1], direction[0], 0.0], [0.0, 0.0, 1.0]])
+    shift = np.append(origin, 0.0)
+    return [Quad(rotation @ q.origin + shift, rotation @ q.edge_u, rotation @ q.edge_v, q.detail) for q in quads]
+
+
 def image_rays(camera: pycolmap.Camera, points2D: np.ndarray) -> np.ndarray:
     """Normalised camera coordinates (x, y) of the rays through pixel positions (rays are (x, y, 1)).
 
@@ -208,10 +449,11 @@ def image_rays(camera: pycolmap.Camera, points2D: np.ndarray) -> np.ndarray:
     return camera.cam_from_img(np.asarray(points2D, np.float64))
 
 
-def in_frustum(corners: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Per quad (corners Qx4x3, camera frame): False if all corners lie outside one side of the view pyramid."""
+def in_frustum(corners: np.ndarray, lo: np.ndarray, hi: np.ndarray, far: float = np.inf) -> np.ndarray:
+    """Per quad (corners Qx4x3, camera frame): False if all corners lie outside one side of the
+    view pyramid, or beyond depth `far`."""
     x, y, z = corners[..., 0], corners[..., 1], corners[..., 2]
-    outside = [x > hi[0] * z, x < lo[0] * z, y > hi[1] * z, y < lo[1] * z]
+    outside = [x > hi[0] * z, x < lo[0] * z, y > hi[1] * z, y < lo[1] * z, z > far]
     return ~np.any([o.all(axis=1) for o in outside], axis=0)
 
 
@@ -226,6 +468,7 @@ def cast_rays(
     cam_from_world: pycolmap.Rigid3d,
     rays: np.ndarray,
     near: float = 1e-3,
+    far: float = np.inf,
 ) -> RayHits:
     """Nearest quad of the scene hit by each camera-frame ray (x, y, 1), for rays laid out as an HxWx2 array.
 
@@ -233,6 +476,8 @@ def cast_rays(
     hits at depth t = c / (n.(x, y, 1)). Each quad is only tested on the rows and columns
     of `rays` whose x, y ranges meet its projected bounding box, which is what makes
     rendering fast (a pixel grid); any other layout (e.g. Nx1x2 points) stays correct.
+    Quads wholly beyond depth `far` are left out (hits there are missed): with a finite
+    `far`, only the quads near the camera are looked at, however large the scene.
     """
     x = np.ascontiguousarray(rays[..., 0], np.float32)
     y = np.ascontiguousarray(rays[..., 1], np.float32)
@@ -240,14 +485,20 @@ def cast_rays(
     zeros = np.zeros(shape, np.float32)
     hits = RayHits(np.full(shape, np.inf, np.float32), np.full(shape, -1, np.int32), zeros, zeros.copy())
     rotation, translation = cam_from_world.rotation.matrix(), cam_from_world.translation
-    corners = scene.quad_corners @ rotation.T + translation
+    if np.isfinite(far):
+        longest_ray = np.sqrt(np.nanmax(x * x + y * y) + 1.0)  # per unit of depth
+        candidates = scene.quads_near(cam_from_world.inverse().translation, far * longest_ray)
+    else:
+        candidates = np.arange(len(scene.quads))
+    corners = scene.quad_corners[candidates] @ rotation.T + translation
     lo, hi = np.array([np.nanmin(x), np.nanmin(y)]), np.array([np.nanmax(x), np.nanmax(y)])
     col_min, col_max = np.nanmin(x, axis=0), np.nanmax(x, axis=0)
     row_min, row_max = np.nanmin(y, axis=1), np.nanmax(y, axis=1)
-    for index in np.flatnonzero(in_frustum(corners, lo, hi)):
+    for k in np.flatnonzero(in_frustum(corners, lo, hi, far)):
+        index = candidates[k]
         rows, cols = slice(None), slice(None)
-        if np.all(corners[index, :, 2] > near):
-            projected = corners[index, :, :2] / corners[index, :, 2:]
+        if np.all(corners[k, :, 2] > near):
+            projected = corners[k, :, :2] / corners[k, :, 2:]
             rows = index_range(row_min, row_max, projected[:, 1].min(), projected[:, 1].max())
             cols = index_range(col_min, col_max, projected[:, 0].min(), projected[:, 0].max())
         quad = scene.quads[index]
@@ -274,7 +525,7 @@ def intersect_quad(
     hits: RayHits,
 ) -> None:
     """Z-buffer one quad (camera frame: corner `origin`, edges eu, ev) into `hits` for the rays (x, y, 1)."""
-    normal = np.cross(eu, ev)
+    normal = np.array([eu[1] * ev[2] - eu[2] * ev[1], eu[2] * ev[0] - eu[0] * ev[2], eu[0] * ev[1] - eu[1] * ev[0]])
     gu, gv = eu / (eu @ eu), ev / (ev @ ev)
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = np.float32(normal @ origin) / ray_dot(normal, x, y)
