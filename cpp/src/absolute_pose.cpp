@@ -6,6 +6,7 @@
 #include <opengv/absolute_pose/CentralAbsoluteAdapter.hpp>
 #include <opengv/absolute_pose/NoncentralAbsoluteAdapter.hpp>
 #include <opengv/absolute_pose/methods.hpp>
+#include <opengv/absolute_pose/modules/main.hpp>
 
 #include "refinement.hpp"
 
@@ -14,7 +15,6 @@ namespace {
 
 using opengv::bearingVectors_t;
 using opengv::points_t;
-using opengv::absolute_pose::CentralAbsoluteAdapter;
 using opengv::absolute_pose::NoncentralAbsoluteAdapter;
 
 // The reprojection error of a point x seen along the unit ray f: the point's offset on
@@ -34,9 +34,10 @@ class RigFrameObservations {
   RigFrameObservations(const bearingVectors_t& rays, const std::vector<int>& camera_index,
                        const points_t& points, const Rig& rig,
                        const std::vector<double>& max_errors)
-      : data_(rays.size(), kColumns) {
+      : data_(rays.size(), kColumns), centred_(true) {
     for (size_t i = 0; i < rays.size(); ++i) {
       const Pose rig_from_cam = inverse(rig.cams_from_rig[camera_index[i]]);
+      centred_ &= rig_from_cam.t.isZero(0.0);
       const Eigen::Vector3d ray = rig_from_cam.R * rays[i];
       const Eigen::Vector3d tangent = ray.unitOrthogonal();
       data_.row(i) << points[i].transpose(), ray.transpose(), tangent.transpose(),
@@ -49,25 +50,11 @@ class RigFrameObservations {
   // The squared errors over their thresholds of observations begin..end-1 given
   // rig_from_world, into errors[0..]: +inf beside or behind the ray.
   void squared_errors(const Pose& rig_from_world, size_t begin, size_t end,
-                      double* __restrict errors) const {
-    const Eigen::Matrix3d& R = rig_from_world.R;
-    const Eigen::Vector3d& t = rig_from_world.t;
-    const double r00 = R(0, 0), r01 = R(0, 1), r02 = R(0, 2), r10 = R(1, 0), r11 = R(1, 1),
-                 r12 = R(1, 2), r20 = R(2, 0), r21 = R(2, 1), r22 = R(2, 2);
-    const double t0 = t.x(), t1 = t.y(), t2 = t.z();
-    const double *X = col(kX), *Y = col(kX + 1), *Z = col(kX + 2), *fx = col(kRay),
-                 *fy = col(kRay + 1), *fz = col(kRay + 2), *ox = col(kCentre),
-                 *oy = col(kCentre + 1), *oz = col(kCentre + 2), *weight = col(kWeight);
-    for (size_t i = begin; i < end; ++i) {
-      const double x = r00 * X[i] + r01 * Y[i] + r02 * Z[i] + t0 - ox[i];
-      const double y = r10 * X[i] + r11 * Y[i] + r12 * Z[i] + t1 - oy[i];
-      const double z = r20 * X[i] + r21 * Y[i] + r22 * Z[i] + t2 - oz[i];
-      const double depth = fx[i] * x + fy[i] * y + fz[i] * z;
-      const double cx = fy[i] * z - fz[i] * y, cy = fz[i] * x - fx[i] * z,
-                   cz = fx[i] * y - fy[i] * x;
-      const double error =
-          weight[i] * weight[i] * (cx * cx + cy * cy + cz * cz) / (depth * depth);
-      errors[i - begin] = depth > kMinDepth ? error : std::numeric_limits<double>::infinity();
+                      double* errors) const {
+    if (centred_) {
+      squared_errors<false>(rig_from_world, begin, end, errors);
+    } else {
+      squared_errors<true>(rig_from_world, begin, end, errors);
     }
   }
 
@@ -85,9 +72,40 @@ class RigFrameObservations {
   static constexpr double kMinDepth = 1e-9;
 
  private:
+  // kOffCentre: some camera's centre is not the rig's (a single camera's always is).
+  template <bool kOffCentre>
+  void squared_errors(const Pose& rig_from_world, size_t begin, size_t end,
+                      double* __restrict errors) const {
+    const Eigen::Matrix3d& R = rig_from_world.R;
+    const Eigen::Vector3d& t = rig_from_world.t;
+    const double r00 = R(0, 0), r01 = R(0, 1), r02 = R(0, 2), r10 = R(1, 0), r11 = R(1, 1),
+                 r12 = R(1, 2), r20 = R(2, 0), r21 = R(2, 1), r22 = R(2, 2);
+    const double t0 = t.x(), t1 = t.y(), t2 = t.z();
+    const double *X = col(kX), *Y = col(kX + 1), *Z = col(kX + 2), *fx = col(kRay),
+                 *fy = col(kRay + 1), *fz = col(kRay + 2), *ox = col(kCentre),
+                 *oy = col(kCentre + 1), *oz = col(kCentre + 2), *weight = col(kWeight);
+    for (size_t i = begin; i < end; ++i) {
+      double x = r00 * X[i] + r01 * Y[i] + r02 * Z[i] + t0;
+      double y = r10 * X[i] + r11 * Y[i] + r12 * Z[i] + t1;
+      double z = r20 * X[i] + r21 * Y[i] + r22 * Z[i] + t2;
+      if constexpr (kOffCentre) {
+        x -= ox[i];
+        y -= oy[i];
+        z -= oz[i];
+      }
+      const double depth = fx[i] * x + fy[i] * y + fz[i] * z;
+      const double cx = fy[i] * z - fz[i] * y, cy = fz[i] * x - fx[i] * z,
+                   cz = fx[i] * y - fy[i] * x;
+      const double error =
+          weight[i] * weight[i] * (cx * cx + cy * cy + cz * cz) / (depth * depth);
+      errors[i - begin] = depth > kMinDepth ? error : std::numeric_limits<double>::infinity();
+    }
+  }
+
   const double* col(int c) const { return data_.col(c).data(); }
 
   Eigen::Matrix<double, Eigen::Dynamic, kColumns> data_;  // column-major
+  bool centred_;  // every camera's centre is the rig's
 };
 
 // Least squares over the inliers' reprojection errors over their thresholds (see
@@ -216,11 +234,11 @@ class AbsolutePoseEstimator : public RigReprojectionErrors {
         method_(method) {}
 
   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const {
-    bearingVectors_t s_rays;
-    points_t s_points;
-    for (int i : sample) {
-      s_rays.push_back(rays_[i]);
-      s_points.push_back(points_[i]);
+    bearingVectors_t s_rays(kSampleSize);
+    points_t s_points(kSampleSize);
+    for (int k = 0; k < kSampleSize; ++k) {
+      s_rays[k] = rays_[sample[k]];
+      s_points[k] = points_[sample[k]];
     }
     for (const Pose& pose : p3p(s_rays, s_points, method_)) models->push_back(pose);
   }
@@ -251,11 +269,14 @@ class GeneralizedAbsolutePoseEstimator : public RigReprojectionErrors {
 }  // namespace
 
 std::vector<Pose> p3p(const bearingVectors_t& rays, const points_t& points, P3PMethod method) {
-  CentralAbsoluteAdapter adapter(rays, points);
-  const std::vector<int> indices = {0, 1, 2};
-  const opengv::transformations_t solutions =
-      method == P3PMethod::kKneip ? opengv::absolute_pose::p3p_kneip(adapter, indices)
-                                  : opengv::absolute_pose::p3p_gao(adapter, indices);
+  // OpenGV's solvers themselves: its p3p_kneip and p3p_gao only copy three rays and points
+  // out of an adapter into new vectors first.
+  opengv::transformations_t solutions;
+  if (method == P3PMethod::kKneip) {
+    opengv::absolute_pose::modules::p3p_kneip_main(rays, points, solutions);
+  } else {
+    opengv::absolute_pose::modules::p3p_gao_main(rays, points, solutions);
+  }
   std::vector<Pose> poses;
   for (const auto& T : solutions) {
     if (!T.allFinite()) continue;

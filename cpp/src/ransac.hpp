@@ -71,7 +71,7 @@ inline int required_iterations(int num_inliers, int num_data, int sample_size, d
 
 // Data scored at once by squared_errors: small, so that scoring a model that cannot win
 // stops soon after its score passes the bound.
-constexpr size_t kScoreBlock = 16;
+constexpr size_t kScoreBlock = 64;
 
 // MSAC score of one model (lower is better). Scoring stops early once the score passes
 // `bound`: such a model cannot become the best one.
