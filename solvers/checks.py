@@ -24,11 +24,14 @@ def as_rays(values, name: str) -> np.ndarray:
         array = np.hstack([array, np.ones((len(array), 1))])
     elif array.shape[1] != 3:
         raise ValueError(f"{name} must have shape (N, 2) or (N, 3), got {array.shape}")
-    largest = np.abs(array).max(axis=1, keepdims=True)
-    if (largest == 0).any():
-        raise ValueError(f"{name} contains a zero-length ray")
-    array = array / largest  # no overflow in the norm for huge entries
-    return np.ascontiguousarray(array / np.linalg.norm(array, axis=1, keepdims=True))
+    norms = np.sqrt(np.einsum("ij,ij->i", array, array))
+    if not (np.isfinite(norms) & (norms > 0)).all():  # zero, or squares out of range
+        largest = np.abs(array).max(axis=1, keepdims=True)
+        if (largest == 0).any():
+            raise ValueError(f"{name} contains a zero-length ray")
+        array = array / largest
+        norms = np.linalg.norm(array, axis=1)
+    return np.ascontiguousarray(array / norms[:, None])
 
 
 def as_points3D(values, name: str) -> np.ndarray:

@@ -396,6 +396,18 @@ def test_normalized_points_and_rays_give_the_same_result():
     np.testing.assert_array_equal(valid_a, valid_b)
 
 
+def test_rays_of_any_length_give_the_same_result():
+    """Rays are normalised even where their squares leave the floating-point range."""
+    view = one_view(seed=6, outlier_ratio=0.3)
+    unit = solvers.absolute_pose(view.x, view.X, max_error=MAX_ERROR, seed=9)
+    for length in (1e-200, 1e200):
+        scaled = solvers.absolute_pose(homogeneous(view.x) * length, view.X,
+                                       max_error=MAX_ERROR, seed=9)
+        np.testing.assert_array_equal(unit.inlier_mask, scaled.inlier_mask)
+        np.testing.assert_allclose(unit.cam_from_world.matrix(), scaled.cam_from_world.matrix(),
+                                   atol=1e-9)
+
+
 # ---------------------------------------------------------------- bad input
 
 GOOD = two_view(seed=8, n=20)

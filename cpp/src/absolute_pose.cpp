@@ -6,6 +6,7 @@
 #include <opengv/absolute_pose/CentralAbsoluteAdapter.hpp>
 #include <opengv/absolute_pose/NoncentralAbsoluteAdapter.hpp>
 #include <opengv/absolute_pose/methods.hpp>
+#include <opengv/absolute_pose/modules/main.hpp>
 
 #include "refinement.hpp"
 
@@ -14,91 +15,142 @@ namespace {
 
 using opengv::bearingVectors_t;
 using opengv::points_t;
-using opengv::absolute_pose::CentralAbsoluteAdapter;
 using opengv::absolute_pose::NoncentralAbsoluteAdapter;
 
-// The reprojection error of a point x (camera frame) seen along the unit ray f: the
-// point's position on the plane tangent to the unit sphere at f, B^T x / (f . x), with B
-// an orthonormal basis of that plane (two tangents of the angle between f and x). For
-// rays in any direction; a point at 90 degrees or more from its ray never fits.
-struct TangentFrame {
-  Eigen::Vector3d f;
-  Eigen::Matrix<double, 3, 2> B;
+// The reprojection error of a point x seen along the unit ray f: the point's offset on
+// the plane tangent to the unit sphere at f, |f x x| / (f . x) (the tangent of the angle
+// between f and x). For rays in any direction; a point at 90 degrees or more from its ray
+// never fits. The error turns with the frame, so that of x_cam = R_c x_rig + t_c along a
+// rig camera's ray f is that of x_rig - o along R_c^T f, o the camera's centre in the rig:
+// every observation is scored in the rig's frame, against rig_from_world alone.
+//
+// The observations in the rig's frame, a column per coordinate (each contiguous, so that
+// scoring vectorises): world point, ray, an orthonormal basis of the tangent plane (the
+// refinement's residual), centre of the observing camera, and the weight 1 / threshold.
+class RigFrameObservations {
+ public:
+  enum Column { kX, kRay = 3, kTangent1 = 6, kTangent2 = 9, kCentre = 12, kWeight = 15, kColumns };
+
+  RigFrameObservations(const bearingVectors_t& rays, const std::vector<int>& camera_index,
+                       const points_t& points, const Rig& rig,
+                       const std::vector<double>& max_errors)
+      : data_(rays.size(), kColumns), centred_(true) {
+    for (size_t i = 0; i < rays.size(); ++i) {
+      const Pose rig_from_cam = inverse(rig.cams_from_rig[camera_index[i]]);
+      centred_ &= rig_from_cam.t.isZero(0.0);
+      const Eigen::Vector3d ray = rig_from_cam.R * rays[i];
+      const Eigen::Vector3d tangent = ray.unitOrthogonal();
+      data_.row(i) << points[i].transpose(), ray.transpose(), tangent.transpose(),
+          ray.cross(tangent).transpose(), rig_from_cam.t.transpose(), 1.0 / max_errors[i];
+    }
+  }
+
+  size_t size() const { return static_cast<size_t>(data_.rows()); }
+
+  // The squared errors over their thresholds of observations begin..end-1 given
+  // rig_from_world, into errors[0..]: +inf beside or behind the ray.
+  void squared_errors(const Pose& rig_from_world, size_t begin, size_t end,
+                      double* errors) const {
+    if (centred_) {
+      squared_errors<false>(rig_from_world, begin, end, errors);
+    } else {
+      squared_errors<true>(rig_from_world, begin, end, errors);
+    }
+  }
+
+  Eigen::Vector3d point(int i) const { return data_.row(i).segment<3>(kX); }
+  Eigen::Vector3d ray(int i) const { return data_.row(i).segment<3>(kRay); }
+  Eigen::Matrix<double, 2, 3> tangents(int i) const {  // the basis as rows
+    Eigen::Matrix<double, 2, 3> B;
+    B << data_.row(i).segment<3>(kTangent1), data_.row(i).segment<3>(kTangent2);
+    return B;
+  }
+  Eigen::Vector3d centre(int i) const { return data_.row(i).segment<3>(kCentre); }
+  double weight(int i) const { return data_(i, kWeight); }
+
+  // Depths along the ray at or below this never fit (the point is beside or behind it).
+  static constexpr double kMinDepth = 1e-9;
+
+ private:
+  // kOffCentre: some camera's centre is not the rig's (a single camera's always is).
+  template <bool kOffCentre>
+  void squared_errors(const Pose& rig_from_world, size_t begin, size_t end,
+                      double* __restrict errors) const {
+    const Eigen::Matrix3d& R = rig_from_world.R;
+    const Eigen::Vector3d& t = rig_from_world.t;
+    const double r00 = R(0, 0), r01 = R(0, 1), r02 = R(0, 2), r10 = R(1, 0), r11 = R(1, 1),
+                 r12 = R(1, 2), r20 = R(2, 0), r21 = R(2, 1), r22 = R(2, 2);
+    const double t0 = t.x(), t1 = t.y(), t2 = t.z();
+    const double *X = col(kX), *Y = col(kX + 1), *Z = col(kX + 2), *fx = col(kRay),
+                 *fy = col(kRay + 1), *fz = col(kRay + 2), *ox = col(kCentre),
+                 *oy = col(kCentre + 1), *oz = col(kCentre + 2), *weight = col(kWeight);
+    for (size_t i = begin; i < end; ++i) {
+      double x = r00 * X[i] + r01 * Y[i] + r02 * Z[i] + t0;
+      double y = r10 * X[i] + r11 * Y[i] + r12 * Z[i] + t1;
+      double z = r20 * X[i] + r21 * Y[i] + r22 * Z[i] + t2;
+      if constexpr (kOffCentre) {
+        x -= ox[i];
+        y -= oy[i];
+        z -= oz[i];
+      }
+      const double depth = fx[i] * x + fy[i] * y + fz[i] * z;
+      const double cx = fy[i] * z - fz[i] * y, cy = fz[i] * x - fx[i] * z,
+                   cz = fx[i] * y - fy[i] * x;
+      const double error =
+          weight[i] * weight[i] * (cx * cx + cy * cy + cz * cz) / (depth * depth);
+      errors[i - begin] = depth > kMinDepth ? error : std::numeric_limits<double>::infinity();
+    }
+  }
+
+  const double* col(int c) const { return data_.col(c).data(); }
+
+  Eigen::Matrix<double, Eigen::Dynamic, kColumns> data_;  // column-major
+  bool centred_;  // every camera's centre is the rig's
 };
 
-inline TangentFrame tangent_frame(const Eigen::Vector3d& f) {
-  TangentFrame frame{f, {}};
-  const Eigen::Vector3d a = f.unitOrthogonal();
-  frame.B << a, f.cross(a);
-  return frame;
-}
-
-// Depths along the ray at or below this never fit (the point is beside or behind it).
-constexpr double kMinDepth = 1e-9;
-
-// The point X of world observation i in its camera's frame: x_cam = R_c (R X + t) + t_c
-// for rig_from_world (R, t) and the observing camera's cam_from_rig (R_c, t_c).
-inline Eigen::Vector3d in_camera(const Pose& cam_from_rig, const Pose& rig_from_world,
-                                 const Eigen::Vector3d& X) {
-  return cam_from_rig.R * (rig_from_world.R * X + rig_from_world.t) + cam_from_rig.t;
-}
-
-// The squared tangent-plane reprojection error of x_cam, times weight^2; +inf beside or
-// behind the ray.
-inline double weighted_squared_error(const TangentFrame& frame, double weight,
-                                     const Eigen::Vector3d& x_cam) {
-  const double depth = frame.f.dot(x_cam);
-  if (depth <= kMinDepth) return std::numeric_limits<double>::infinity();
-  return weight * weight * (frame.B.transpose() * x_cam / depth).squaredNorm();
-}
-
-// Least squares over the inliers' tangent-plane reprojection errors (see refinement.hpp),
-// each over its threshold, in the rotation (exp(w) R) and the translation (t + u) of
-// rig_from_world: 6 degrees of freedom. Observation i is made by camera camera_index[i]
-// of the rig; a single camera is a rig of one identity camera.
+// Least squares over the inliers' reprojection errors over their thresholds (see
+// refinement.hpp), the residual B^T x / (f . x) in the rig's frame (B the tangent basis: the
+// error's two components), in the rotation (exp(w) R) and the translation (t + u) of
+// rig_from_world: 6 degrees of freedom.
 class ReprojectionRefinement {
  public:
   using Vec = Eigen::Matrix<double, 6, 1>;
   using Mat = Eigen::Matrix<double, 6, 6>;
 
-  ReprojectionRefinement(const points_t& points, const std::vector<TangentFrame>& frames,
-                         const std::vector<double>& weights, const std::vector<int>& camera_index,
-                         const Rig& rig, const std::vector<int>& inliers, Pose* rig_from_world)
-      : points_(points), frames_(frames), weights_(weights), camera_index_(camera_index),
-        rig_(rig), inliers_(inliers), pose_(*rig_from_world) {}
+  ReprojectionRefinement(const RigFrameObservations& observations,
+                         const std::vector<int>& inliers, Pose* rig_from_world)
+      : observations_(observations), inliers_(inliers), pose_(*rig_from_world) {}
 
   double linearize(Mat* JtJ, Vec* Jtr) const {
-    JtJ->setZero();
-    Jtr->setZero();
+    Mat H = Mat::Zero();  // locals: kept in registers, not stored point by point
+    Vec g = Vec::Zero();
     double cost = 0.0;
     for (int i : inliers_) {
-      const TangentFrame& frame = frames_[i];
-      const Pose& cam_from_rig = rig_.cams_from_rig[camera_index_[i]];
-      const Eigen::Vector3d RX = pose_.R * points_[i];
-      const Eigen::Vector3d x = cam_from_rig.R * (RX + pose_.t) + cam_from_rig.t;
-      const double inv_depth = 1.0 / frame.f.dot(x);
-      const Eigen::Vector2d r = frame.B.transpose() * x * inv_depth;
-      // d(B^T x / f.x)/dx = (B^T - r f^T) / f.x, and dx = R_c dx_rig
-      const Eigen::Matrix<double, 2, 3> dproject_rig =
-          (frame.B.transpose() - r * frame.f.transpose()) * inv_depth * cam_from_rig.R;
-      Eigen::Matrix<double, 2, 6> J;
-      J << dproject_rig * -skew(RX), dproject_rig;  // dx_rig/dw = -[R X]x, dx_rig/du = I
-      J *= weights_[i];
-      *JtJ += J.transpose() * J;
-      *Jtr += J.transpose() * (weights_[i] * r);
-      cost += weights_[i] * weights_[i] * r.squaredNorm();
+      const Eigen::Vector3d RX = pose_.R * observations_.point(i);
+      const Eigen::Vector3d x = RX + pose_.t - observations_.centre(i);
+      const Eigen::Vector3d f = observations_.ray(i);
+      const Eigen::Matrix<double, 2, 3> B = observations_.tangents(i);
+      const double inv_depth = 1.0 / f.dot(x);
+      const double scale = observations_.weight(i) * inv_depth;
+      const Eigen::Vector2d r = scale * (B * x);  // weighted residual
+      // d(w B^T x / f.x)/dx = (w B^T - r f^T) / f.x; dx/dw = -[R X]x, dx/du = I, and
+      // a^T (-[v]x) = (v x a)^T.
+      const Eigen::Matrix<double, 2, 3> A = scale * B - (inv_depth * r) * f.transpose();
+      Eigen::Matrix<double, 6, 2> Jt;  // J^T
+      Jt << RX.cross(A.row(0).transpose()), RX.cross(A.row(1).transpose()), A.transpose();
+      H.noalias() += Jt * Jt.transpose();
+      g.noalias() += Jt * r;
+      cost += r.squaredNorm();
     }
+    *JtJ = H;
+    *Jtr = g;
     return cost;
   }
 
   double cost(const Vec& delta) const {
     const Pose pose = moved(delta);
     double cost = 0.0;
-    for (int i : inliers_) {
-      const Pose& cam_from_rig = rig_.cams_from_rig[camera_index_[i]];
-      cost += weighted_squared_error(frames_[i], weights_[i],
-                                     in_camera(cam_from_rig, pose, points_[i]));
-    }
+    for (int i : inliers_) cost += residual(i, pose.R * observations_.point(i) + pose.t).squaredNorm();
     return cost;
   }
 
@@ -109,11 +161,17 @@ class ReprojectionRefinement {
     return {rotate_by(delta.head<3>(), pose_.R), pose_.t + delta.tail<3>()};
   }
 
-  const points_t& points_;
-  const std::vector<TangentFrame>& frames_;
-  const std::vector<double>& weights_;  // 1 / each observation's threshold
-  const std::vector<int>& camera_index_;
-  const Rig& rig_;
+  // Observation i's weighted residual, x_rig its point in the rig's frame: +inf beside or
+  // behind the ray.
+  Eigen::Vector2d residual(int i, const Eigen::Vector3d& x_rig) const {
+    const Eigen::Vector3d x = x_rig - observations_.centre(i);
+    const double depth = observations_.ray(i).dot(x);
+    if (depth <= RigFrameObservations::kMinDepth)
+      return Eigen::Vector2d::Constant(std::numeric_limits<double>::infinity());
+    return observations_.weight(i) / depth * (observations_.tangents(i) * x);
+  }
+
+  const RigFrameObservations& observations_;
   const std::vector<int>& inliers_;
   Pose& pose_;
 };
@@ -129,9 +187,8 @@ bool sees_along_ray(const Pose& cam_from_world, const Eigen::Vector3d& X,
   return (x.normalized() - f.normalized()).norm() < kTolerance;
 }
 
-// What the P3P and GP3P estimators share: each observation's tangent-plane reprojection
-// error through its rig camera, over its threshold, and its refinement. Subclasses add
-// minimal_solve.
+// What the P3P and GP3P estimators share: each observation's reprojection error over its
+// threshold, in the rig's frame, and its refinement. Subclasses add minimal_solve.
 class RigReprojectionErrors {
  public:
   using Model = Pose;
@@ -141,25 +198,20 @@ class RigReprojectionErrors {
                         const points_t& points, const Rig& rig,
                         const std::vector<double>& max_errors)
       : rays_(rays), camera_index_(std::move(camera_index)), points_(points), rig_(rig),
-        weights_(weights_from_thresholds(max_errors)) {
-    frames_.reserve(rays.size());
-    for (const auto& f : rays) frames_.push_back(tangent_frame(f));
-  }
+        observations_(rays, camera_index_, points, rig, max_errors) {}
 
   size_t num_data() const { return rays_.size(); }
 
-  // The reprojection error over the observation's threshold, squared (inlier below 1);
+  // The reprojection errors over the observations' thresholds, squared (inlier below 1);
   // a point beside or behind its ray never fits.
-  double squared_error(const Model& rig_from_world, size_t i) const {
-    const Pose& cam_from_rig = rig_.cams_from_rig[camera_index_[i]];
-    return weighted_squared_error(frames_[i], weights_[i],
-                                  in_camera(cam_from_rig, rig_from_world, points_[i]));
+  void squared_errors(const Model& rig_from_world, size_t begin, size_t end,
+                      double* errors) const {
+    observations_.squared_errors(rig_from_world, begin, end, errors);
   }
 
   // Levenberg-Marquardt on the inliers' reprojection errors (6 degrees of freedom).
   bool refine(const std::vector<int>& inliers, Model* rig_from_world) const {
-    ReprojectionRefinement problem(points_, frames_, weights_, camera_index_, rig_, inliers,
-                                   rig_from_world);
+    ReprojectionRefinement problem(observations_, inliers, rig_from_world);
     return levenberg_marquardt<6>(problem);
   }
 
@@ -168,8 +220,7 @@ class RigReprojectionErrors {
   std::vector<int> camera_index_;  // the rig camera of each observation
   const points_t& points_;
   const Rig& rig_;
-  std::vector<TangentFrame> frames_;
-  std::vector<double> weights_;  // 1 / each observation's threshold
+  RigFrameObservations observations_;
 };
 
 // P3P (OpenGV) inside LO-MSAC: cam_from_world of a single camera, a rig of one identity
@@ -183,11 +234,11 @@ class AbsolutePoseEstimator : public RigReprojectionErrors {
         method_(method) {}
 
   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const {
-    bearingVectors_t s_rays;
-    points_t s_points;
-    for (int i : sample) {
-      s_rays.push_back(rays_[i]);
-      s_points.push_back(points_[i]);
+    bearingVectors_t s_rays(kSampleSize);
+    points_t s_points(kSampleSize);
+    for (int k = 0; k < kSampleSize; ++k) {
+      s_rays[k] = rays_[sample[k]];
+      s_points[k] = points_[sample[k]];
     }
     for (const Pose& pose : p3p(s_rays, s_points, method_)) models->push_back(pose);
   }
@@ -218,11 +269,14 @@ class GeneralizedAbsolutePoseEstimator : public RigReprojectionErrors {
 }  // namespace
 
 std::vector<Pose> p3p(const bearingVectors_t& rays, const points_t& points, P3PMethod method) {
-  CentralAbsoluteAdapter adapter(rays, points);
-  const std::vector<int> indices = {0, 1, 2};
-  const opengv::transformations_t solutions =
-      method == P3PMethod::kKneip ? opengv::absolute_pose::p3p_kneip(adapter, indices)
-                                  : opengv::absolute_pose::p3p_gao(adapter, indices);
+  // OpenGV's solvers themselves: its p3p_kneip and p3p_gao only copy three rays and points
+  // out of an adapter into new vectors first.
+  opengv::transformations_t solutions;
+  if (method == P3PMethod::kKneip) {
+    opengv::absolute_pose::modules::p3p_kneip_main(rays, points, solutions);
+  } else {
+    opengv::absolute_pose::modules::p3p_gao_main(rays, points, solutions);
+  }
   std::vector<Pose> poses;
   for (const auto& T : solutions) {
     if (!T.allFinite()) continue;

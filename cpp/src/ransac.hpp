@@ -5,7 +5,9 @@
 //   static constexpr int kSampleSize;
 //   size_t num_data() const;
 //   void minimal_solve(const std::vector<int>& sample, std::vector<Model>* models) const;
-//   double squared_error(const Model& model, size_t i) const;   // +inf or NaN: never fits
+//   // The squared errors of data begin..end-1 into errors[0..]; +inf or NaN: never fits.
+//   // Scored a block at a time, so that an estimator's loop over the block can vectorise.
+//   void squared_errors(const Model& model, size_t begin, size_t end, double* errors) const;
 //   bool refine(const std::vector<int>& inliers, Model* model) const;  // least squares on inliers
 // and may provide, to draw samples other than uniformly:
 //   void draw_sample(std::mt19937_64& rng, std::vector<int>* sample) const;
@@ -67,21 +69,23 @@ inline int required_iterations(int num_inliers, int num_data, int sample_size, d
                                                : static_cast<int>(std::ceil(n));
 }
 
+// Data scored at once by squared_errors: small, so that scoring a model that cannot win
+// stops soon after its score passes the bound.
+constexpr size_t kScoreBlock = 64;
+
 // MSAC score of one model (lower is better). Scoring stops early once the score passes
 // `bound`: such a model cannot become the best one.
 template <typename Estimator>
 double score_model(const Estimator& estimator, const typename Estimator::Model& model,
                    double max_sq_error, double bound = std::numeric_limits<double>::infinity()) {
   double score = 0.0;
+  double errors[kScoreBlock];
   const size_t n = estimator.num_data();
-  for (size_t i = 0; i < n; ++i) {
-    const double e = estimator.squared_error(model, i);
-    if (e < max_sq_error) {
-      score += e;
-    } else {
-      score += max_sq_error;
-      if (score > bound) return score;
-    }
+  for (size_t begin = 0; begin < n; begin += kScoreBlock) {
+    const size_t count = std::min(kScoreBlock, n - begin);
+    estimator.squared_errors(model, begin, begin + count, errors);
+    for (size_t k = 0; k < count; ++k) score += errors[k] < max_sq_error ? errors[k] : max_sq_error;
+    if (score > bound) return score;
   }
   return score;
 }
@@ -90,9 +94,13 @@ template <typename Estimator>
 void find_inliers(const Estimator& estimator, const typename Estimator::Model& model,
                   double max_sq_error, std::vector<int>* inliers) {
   inliers->clear();
+  double errors[kScoreBlock];
   const size_t n = estimator.num_data();
-  for (size_t i = 0; i < n; ++i) {
-    if (estimator.squared_error(model, i) < max_sq_error) inliers->push_back(static_cast<int>(i));
+  for (size_t begin = 0; begin < n; begin += kScoreBlock) {
+    const size_t count = std::min(kScoreBlock, n - begin);
+    estimator.squared_errors(model, begin, begin + count, errors);
+    for (size_t k = 0; k < count; ++k)
+      if (errors[k] < max_sq_error) inliers->push_back(static_cast<int>(begin + k));
   }
 }
 

@@ -16,6 +16,12 @@
 
 namespace colmap_ext {
 
+// Converged when a step lowers the cost by less than kRelativeDecrease of it (Ceres's
+// function_tolerance is 1e-6): near the optimum each step's decrease is 1e-4 to 1e-6 of the
+// one before, so the cost left above the optimum is about 1e-13 of it, far below any
+// change in the inliers, and a step more would only confirm it.
+constexpr double kRelativeDecrease = 1e-8;
+
 template <int D, typename Problem>
 bool levenberg_marquardt(Problem& problem, int max_iterations = 20) {
   using Vec = Eigen::Matrix<double, D, 1>;
@@ -35,7 +41,7 @@ bool levenberg_marquardt(Problem& problem, int max_iterations = 20) {
       const double new_cost = problem.cost(step);
       if (std::isfinite(new_cost) && new_cost < cost) {
         problem.commit(step);
-        const bool converged = cost - new_cost < 1e-12 * cost || step.norm() < 1e-12;
+        const bool converged = cost - new_cost < kRelativeDecrease * cost || step.norm() < 1e-12;
         lambda = std::max(lambda * 0.1, 1e-12);
         improved = true;
         if (converged) return true;

@@ -251,9 +251,10 @@ class RelativePoseEstimator {
     }
   }
 
-  // The angular Sampson error over the pair's threshold, squared (inlier below 1).
-  double squared_error(const Model& model, size_t i) const {
-    return weighted_squared_sampson(model.E, rays1_[i], rays2_[i], weights_[i]);
+  // The angular Sampson errors over the pairs' thresholds, squared (inlier below 1).
+  void squared_errors(const Model& model, size_t begin, size_t end, double* errors) const {
+    for (size_t i = begin; i < end; ++i)
+      *errors++ = weighted_squared_sampson(model.E, rays1_[i], rays2_[i], weights_[i]);
   }
 
   // Levenberg-Marquardt on the inliers' Sampson errors (5 degrees of freedom).
@@ -452,9 +453,11 @@ class GeneralizedRelativePoseEstimator {
     }
   }
 
-  // The angular Sampson error in the pair's camera pair over its threshold, squared.
-  double squared_error(const Model& model, size_t i) const {
-    return weighted_squared_sampson(model.essentials[pair_[i]], rays1_[i], rays2_[i], weights_[i]);
+  // The angular Sampson errors in the pairs' camera pairs over their thresholds, squared.
+  void squared_errors(const Model& model, size_t begin, size_t end, double* errors) const {
+    for (size_t i = begin; i < end; ++i)
+      *errors++ = weighted_squared_sampson(model.essentials[pair_[i]], rays1_[i], rays2_[i],
+                                           weights_[i]);
   }
 
   bool refine(const std::vector<int>& inliers, Model* model) const {
