@@ -21,8 +21,8 @@ KITTI = "kitti03_600-800"
 # 40 pairs with most matches are all 1 to 4 frames apart, and before a8e9a0d's initial
 # pair none of them started a model ("no model could be reconstructed").
 FRAMES = range(750, 801)
-# Measured: R_err max 0.277-0.295 deg, ATE median 0.070-0.071 m (the ground truth is GPS/INS); about
-# 2x and 3x that.
+# Measured: R_err max 0.277-0.295 deg, ATE median 0.070-0.071 m (the ground truth is
+# GPS/INS); about 2x and 3x that.
 R_ERR_MAX_DEG = 0.6
 ATE_MEDIAN_M = 0.2
 # SIFT features an image, a quarter of pycolmap's default: extraction and matching stay short.
