@@ -135,19 +135,24 @@ def test_synthetic_ring_from_database_matches_alone(synthetic, monkeypatch):
     assert report["C_err_max"] < RING_MAX_C_ERR
 
 
-def test_initial_pair_has_most_points_among_the_wide_and_relaxes_as_colmap(synthetic):
-    """The initial pair: most triangulated points among the candidates (the pairs with
-    most matches among those whose parallax reaches PARALLAX_SHARE of the angle) whose
-    median triangulation angle reaches initialization.min_tri_angle_deg. Where no
-    candidate is that wide the angle halves, as COLMAP relaxes it, and the mapper still
-    starts."""
+def ring_model(synthetic) -> tuple[Model, dict, MapperOptions]:
+    """The synthetic ring's empty model, its verified matches and the default options."""
     folder, _ = synthetic
     db = read_database(folder / "database.db")
     options = MapperOptions(seed=0)
     store = NearestDescriptors(db.descriptors, {i: len(db.images[i].keypoints) for i in db.images},
                                options.guided_matching.num_neighbors, 2**26, num_threads=2)
     model = Model(db, store)
-    matches = verified_matches(model, options.two_view, options.seed, progress=False)
+    return model, verified_matches(model, options.two_view, options.seed, progress=False), options
+
+
+def test_initial_pair_has_most_points_among_the_wide_and_relaxes_as_colmap(synthetic):
+    """The initial pair: most triangulated points among the candidates (the pairs with
+    most matches among those whose parallax reaches PARALLAX_SHARE of the angle) whose
+    median triangulation angle reaches initialization.min_tri_angle_deg. Where no
+    candidate is that wide the angle halves, as COLMAP relaxes it, and the mapper still
+    starts."""
+    model, matches, options = ring_model(synthetic)
     ranked = sorted(matches, key=lambda pair: -len(matches[pair]))
     parallax = {pair: parallax_deg(model, pair, matches[pair], options.two_view, options.seed)
                 for pair in ranked}
@@ -179,20 +184,14 @@ def test_initial_pair_has_most_points_among_the_wide_and_relaxes_as_colmap(synth
 def test_parallax_is_the_median_triangulation_angle(synthetic):
     """A pair's parallax (from a 64-match sample's relative rotation) is close to the
     median angle of its reconstructed points, and none for an image with itself."""
-    folder, _ = synthetic
-    db = read_database(folder / "database.db")
-    options = MapperOptions(seed=0)
-    store = NearestDescriptors(db.descriptors, {i: len(db.images[i].keypoints) for i in db.images},
-                               options.guided_matching.num_neighbors, 2**26, num_threads=2)
-    model = Model(db, store)
-    matches = verified_matches(model, options.two_view, options.seed, progress=False)
+    model, matches, options = ring_model(synthetic)
     for pair, pair_matches in sorted(matches.items())[:10]:
         reconstructed = reconstruct_pair(model, pair, pair_matches, options.initialization,
                                          options.two_view, options.triangulation, options.seed)
         parallax = parallax_deg(model, pair, pair_matches, options.two_view, options.seed)
         assert parallax == pytest.approx(reconstructed.median_angle_deg, rel=0.15)
     image_id = pair[0]
-    keypoints = np.arange(len(db.images[image_id].keypoints))
+    keypoints = np.arange(len(model.db.images[image_id].keypoints))
     same = np.stack([keypoints, keypoints], axis=1)
     assert parallax_deg(model, (image_id, image_id), same, options.two_view, options.seed) < 0.01
 

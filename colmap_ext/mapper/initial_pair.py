@@ -228,19 +228,35 @@ def best_pair(model: Model, matches: dict[Pair, np.ndarray],
 
 def parallax_deg(model: Model, pair: Pair, matches: np.ndarray, two_view: TwoViewOptions,
                  seed: int | None) -> float:
-    """The median triangulation angle of a pair's matches, from the relative rotation of
-    a 5-point RANSAC on at most PARALLAX_SAMPLE of them (a match's angle is that between
-    its two rays in one frame: the rotation alone gives it); 0 where the sample gives no
-    pose. Cheap enough to rank every verified pair before any is reconstructed."""
+    """The median triangulation angle of a pair's matches, over at most PARALLAX_SAMPLE of
+    them: a match's angle is that between its two rays in one frame, which the relative
+    rotation alone gives (that of a 5-point RANSAC on the sample). Where one rotation
+    aligns the rays within two_view.max_error_px (orthogonal Procrustes; a standstill or
+    a camera turning on the spot), the relative pose is undetermined and the parallax is
+    what that rotation leaves. Cheap enough to rank every verified pair before any is
+    reconstructed."""
     sample = matches[np.linspace(0, len(matches) - 1, min(len(matches), PARALLAX_SAMPLE))
                      .astype(np.int64)]
+    rays1 = model.rays[pair[0]][sample[:, 0]]
+    rays2 = model.rays[pair[1]][sample[:, 1]]
+    u, _, vt = np.linalg.svd(rays2.T @ rays1)
+    aligning = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
+    rotation_only = _median_angle_deg(rays1, rays2 @ aligning)
+    noise = np.degrees(two_view.max_error_px * np.median(
+        pair_pixel_angles(model, pair[0], sample[:, 0], pair[1], sample[:, 1])))
+    if rotation_only <= noise:
+        return rotation_only
     result = relative_pose(model, pair, sample, two_view.max_error_px, min_num_inliers=5,
                            seed=seed)
     if result is None:
         return 0.0
-    inliers = sample[result.inlier_mask]
-    rays1 = model.rays[pair[0]][inliers[:, 0]]
-    rays2 = model.rays[pair[1]][inliers[:, 1]] @ result.cam2_from_cam1.rotation.matrix()
+    inliers = result.inlier_mask
+    return _median_angle_deg(rays1[inliers],
+                             rays2[inliers] @ result.cam2_from_cam1.rotation.matrix())
+
+
+def _median_angle_deg(rays1: np.ndarray, rays2: np.ndarray) -> float:
+    """The median angle (degrees) between corresponding unit rays."""
     cosines = np.clip(np.einsum("ij,ij->i", rays1, rays2), -1.0, 1.0)
     return float(np.degrees(np.median(np.arccos(cosines))))
 
