@@ -396,7 +396,7 @@ def loop_detection_vocabulary(db: pycolmap.Database, vocab_tree_path: str | os.P
     if vocab_tree_path is not None:
         yield Path(vocab_tree_path)
         return
-    with tempfile.TemporaryDirectory(prefix="colmap-ext-vocabulary-") as scratch:
+    with OwnedTemporaryDirectory("colmap-ext-vocabulary-") as scratch:
         path = Path(scratch) / "vocabulary.bin"
         with tqdm(total=1, desc="loop detection vocabulary", unit="vocabulary",
                   disable=not progress) as bar:
