@@ -206,7 +206,8 @@ def run_stages(image_path: str | Path, new_workspace: Path, shown: Callable[[str
         feature_summary, matching_summary, summary["ray"] = distributed.extract_and_match(
             cluster, database_path, image_path, names, features, matching, timer)
     summary["features"] = feature_summary.to_dict()
-    timer.seconds["loop_detection"] = matching_summary.loop_detection_seconds
+    if matching.loop_detection and matching_summary.loop_detection_seconds:
+        timer.seconds["loop_detection"] = matching_summary.loop_detection_seconds
     timer.seconds["matching"] = matching_summary.matching_seconds
     timer.seconds["verification"] = matching_summary.verification_seconds
     summary["matching"] = matching_summary.to_dict()
