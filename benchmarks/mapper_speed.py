@@ -315,6 +315,20 @@ def growth_exponents(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]]
     return lines
 
 
+def add_run_arguments(parser: argparse.ArgumentParser, section: str) -> None:
+    """The mappers, rounds, seed, work folder and Markdown output of the timed benchmarks
+    (this one and sequences.py); `section`: the default section written."""
+    parser.add_argument("--mappers", default=",".join(MAPPERS))
+    parser.add_argument("--runs", type=int, default=3)
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--work_dir", default=None,
+                        help="keep databases and models here; databases found there are reused")
+    parser.add_argument("--markdown", default=None,
+                        help="also write the table as a section of this file (e.g. BENCHMARKS.md)")
+    parser.add_argument("--section", default=section,
+                        help="that section's name, so that runs of different sets keep theirs")
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -323,15 +337,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sets", default=None,
                         help="comma-separated names (default: every real set, demo, turntable, "
                              + ", ".join(SYNTHETIC_SIZES) + ")")
-    parser.add_argument("--mappers", default=",".join(MAPPERS))
-    parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--work_dir", default=None,
-                        help="keep databases and models here; databases found there are reused")
-    parser.add_argument("--markdown", default=None,
-                        help="also write the table as a section of this file (e.g. BENCHMARKS.md)")
-    parser.add_argument("--section", default="speed",
-                        help="that section's name, so that runs of different sets keep theirs")
+    add_run_arguments(parser, section="speed")
     parser.add_argument("--end_to_end", action="store_true",
                         help="from the images (real sets and demo): `colmap-ext reconstruct` "
                              "against COLMAP's extraction, exhaustive matching and mapper")

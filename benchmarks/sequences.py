@@ -38,8 +38,8 @@ from pathlib import Path
 SCRIPT = Path(__file__).resolve()
 sys.path.insert(0, str(SCRIPT.parent))  # mapper_speed.py, accuracy.py
 
-from mapper_speed import (MAPPERS, PreparedSet, largest_model, run_rounds,  # noqa: E402
-                          summarize, write_placeholder_images)
+from mapper_speed import (MAPPERS, PreparedSet, add_run_arguments, largest_model,  # noqa: E402
+                          run_rounds, summarize, write_placeholder_images)
 
 KITTI = "kitti03_600-800"
 SEQUENTIAL_OVERLAP = 10  # frames each frame is matched with, as COLMAP's sequential matching
@@ -206,14 +206,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", default=os.environ.get("COLMAP_EXT_DATA"),
                         help=f"folder holding {KITTI} (default: $COLMAP_EXT_DATA)")
     parser.add_argument("--sets", default=",".join([KITTI, *DRIVES]))
-    parser.add_argument("--mappers", default=",".join(MAPPERS))
-    parser.add_argument("--runs", type=int, default=3)
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--work_dir", default=None,
-                        help="keep databases and models here; databases found there are reused")
-    parser.add_argument("--markdown", default=None,
-                        help="also write the table as a section of this file (e.g. BENCHMARKS.md)")
-    parser.add_argument("--section", default="sequences", help="that section's name")
+    add_run_arguments(parser, section="sequences")
     args = parser.parse_args(argv)
     names = [n for n in args.sets.split(",") if n]
     mappers = [m for m in args.mappers.split(",") if m]
