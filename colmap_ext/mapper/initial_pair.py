@@ -17,6 +17,7 @@ import pycolmap
 
 import solvers
 from colmap_ext.errors import UserError
+from colmap_ext.geometry import nearest_rotation, vector_angles_deg
 from colmap_ext.mapper.guided_matching import epipolar_inliers, pair_pixel_angles
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (InitializationOptions, TriangulationOptions,
@@ -239,26 +240,18 @@ def parallax_deg(model: Model, pair: Pair, matches: np.ndarray, two_view: TwoVie
                      .astype(np.int64)]
     rays1 = model.rays[pair[0]][sample[:, 0]]
     rays2 = model.rays[pair[1]][sample[:, 1]]
-    u, _, vt = np.linalg.svd(rays2.T @ rays1)
-    aligning = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt
-    rotation_only = _median_angle_deg(rays1, rays2 @ aligning)
+    rotation_only = np.median(vector_angles_deg(rays1, rays2 @ nearest_rotation(rays2.T @ rays1)))
     noise = np.degrees(two_view.max_error_px * np.median(
         pair_pixel_angles(model, pair[0], sample[:, 0], pair[1], sample[:, 1])))
     if rotation_only <= noise:
-        return rotation_only
+        return float(rotation_only)
     result = relative_pose(model, pair, sample, two_view.max_error_px, min_num_inliers=5,
                            seed=seed)
     if result is None:
         return 0.0
     inliers = result.inlier_mask
-    return _median_angle_deg(rays1[inliers],
-                             rays2[inliers] @ result.cam2_from_cam1.rotation.matrix())
-
-
-def _median_angle_deg(rays1: np.ndarray, rays2: np.ndarray) -> float:
-    """The median angle (degrees) between corresponding unit rays."""
-    cosines = np.clip(np.einsum("ij,ij->i", rays1, rays2), -1.0, 1.0)
-    return float(np.degrees(np.median(np.arccos(cosines))))
+    return float(np.median(vector_angles_deg(
+        rays1[inliers], rays2[inliers] @ result.cam2_from_cam1.rotation.matrix())))
 
 
 def check_requested_pair(image_ids: Iterable[int], initialization: InitializationOptions) -> None:
