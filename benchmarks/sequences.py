@@ -6,7 +6,7 @@ Sets (--sets, all by default):
 - kitti03_600-800: 201 frames of the real KITTI odometry sequence 03 under --data
   ($COLMAP_EXT_DATA); its database: pycolmap's default SIFT, one PINHOLE camera with the
   known intrinsics of its *_par.txt, sequential matching (each frame with the next 10), CPU;
-- drive200, drive2000, drive10000: synthetic drives (`driving_scene`: steps of 1 m, the
+- drive200, drive800, drive2000, drive10000: synthetic drives (`driving_scene`: steps of 1 m, the
   camera looking forward, a 90 deg corner every 60 m or so taken over 6 frames, a stop of
   10 frames every 300), about 1000 keypoints an image within 40 m, 0.5 px noise, 20 % wrong
   matches, verified geometries, each frame matched with the next 10; placeholder images;
@@ -45,7 +45,8 @@ KITTI = "kitti03_600-800"
 SEQUENTIAL_OVERLAP = 10  # frames each frame is matched with, as COLMAP's sequential matching
 KEYPOINTS_PER_IMAGE = 1000
 MAX_DISTANCE = 40.0  # metres: farther points are not observed
-DRIVES = {"drive200": {"num_images": 200}, "drive2000": {"num_images": 2000},
+DRIVES = {"drive200": {"num_images": 200}, "drive800": {"num_images": 800},
+          "drive2000": {"num_images": 2000},
           "drive10000": {"num_images": 10000}, "loop500": {"num_images": 500, "loop": True}}
 
 
