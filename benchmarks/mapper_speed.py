@@ -166,7 +166,8 @@ def prepare_demo(work: Path, seed: int) -> PreparedSet:
 def prepare_synthetic(name: str, work: Path, seed: int) -> PreparedSet:
     """A synthetic database with placeholder images (our mapper reads colours from them)."""
     from colmap_ext.synthetic import (points_for_keypoints, ring_scene, scene_points, trajectory_scene,
-                                      write_ground_truth, write_synthetic_database)
+                                      write_ground_truth, write_placeholder_images,
+                                      write_synthetic_database)
 
     folder = work / name
     if name == "turntable":
@@ -184,18 +185,6 @@ def prepare_synthetic(name: str, work: Path, seed: int) -> PreparedSet:
         write_ground_truth(scene, folder / "ground_truth")
     return PreparedSet(name, folder / "database.db", folder / "images",
                        folder / "ground_truth", scene.num_images)
-
-
-def write_placeholder_images(folder: Path, names: list[str]) -> None:
-    """A black 8x8 PNG under each image name: a database without images still needs files
-    that our mapper can read point colours from."""
-    import cv2
-    import numpy as np
-
-    placeholder = cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes()
-    for name in names:
-        (folder / name).parent.mkdir(parents=True, exist_ok=True)
-        (folder / name).write_bytes(placeholder)
 
 
 def prepare(name: str, data: dict[str, Dataset], work: Path, seed: int) -> PreparedSet:

@@ -61,10 +61,10 @@ import numpy as np  # before pycolmap (README, "Known problem")
 import pycolmap
 
 from accuracy import machine_line, markdown_table, update_section, versions_line, work_folder
-from mapper_speed import (MAPPERS, PreparedSet, largest_model, mapper_command, timed_run,
-                          write_placeholder_images)
+from mapper_speed import MAPPERS, PreparedSet, largest_model, mapper_command, timed_run
 
 from colmap_ext.geometry import rotation_angles_deg
+from colmap_ext.synthetic import write_placeholder_images
 from colmap_ext.evaluate import aligned_to_ground_truth, evaluate
 from colmap_ext.ground_truth import GroundTruth, read_ground_truth
 from colmap_ext.mapper.bundle_adjustment import adjust_reconstruction

@@ -39,7 +39,7 @@ SCRIPT = Path(__file__).resolve()
 sys.path.insert(0, str(SCRIPT.parent))  # mapper_speed.py, accuracy.py
 
 from mapper_speed import (MAPPERS, PreparedSet, add_run_arguments, largest_model,  # noqa: E402
-                          run_rounds, summarize, write_placeholder_images)
+                          run_rounds, summarize)
 
 KITTI = "kitti03_600-800"
 SEQUENTIAL_OVERLAP = 10  # frames each frame is matched with, as COLMAP's sequential matching
@@ -80,7 +80,8 @@ def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
     import numpy as np
 
     from colmap_ext.synthetic import (driving_scene, points_for_keypoints, sequential_pairs,
-                                      write_ground_truth, write_synthetic_database)
+                                      write_ground_truth, write_placeholder_images,
+                                      write_synthetic_database)
 
     folder = work / name
     scene = driving_scene(seed=seed, **DRIVES[name])

@@ -8,7 +8,6 @@ import hashlib
 import json
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pycolmap
 import pytest
@@ -20,7 +19,8 @@ from colmap_ext.compare import MAPPERS, compare
 from colmap_ext.errors import UserError
 from colmap_ext.evaluate import evaluate
 from colmap_ext.ground_truth import read_ground_truth
-from colmap_ext.synthetic import ring_scene, scene_points, write_ground_truth, write_synthetic_database
+from colmap_ext.synthetic import (ring_scene, scene_points, write_ground_truth, write_placeholder_images,
+                                  write_synthetic_database)
 
 MODEL_FILES = ("cameras.bin", "images.bin", "points3D.bin", "rigs.bin", "frames.bin")
 MAPPER_KEYS = ("time_s", "num_registered", "num_images", "num_models", "num_points3D",
@@ -47,9 +47,7 @@ def synthetic(tmp_path_factory):
     scene = ring_scene(num_images=10, seed=3)
     write_synthetic_database(folder / "database.db", scene, scene_points(scene, 1500, seed=3),
                              noise_px=0.5, outlier_ratio=0.2, seed=3, two_view_geometries=True)
-    (folder / "images").mkdir()
-    for name in scene.image_names:
-        cv2.imwrite(str(folder / "images" / name), np.zeros((8, 8), np.uint8))
+    write_placeholder_images(folder / "images", scene.image_names)
     write_ground_truth(scene, folder / "gt")
     return folder, scene
 

@@ -14,7 +14,6 @@ import sys
 import time
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pycolmap
 import pytest
@@ -28,6 +27,7 @@ from colmap_ext.hierarchical_mapper import (MAPPER_DEFAULTS, ClusterModel, Hiera
                                             hierarchical_mapping, partition, similarity)
 from colmap_ext.mapper.cli import options_from_flags
 from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
+from colmap_ext.synthetic import write_placeholder_images
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
 from colmap_ext.synthetic.pycolmap_generator import write_pycolmap_dataset
 from colmap_ext.synthetic.scene import Quad, Scene, box_quads, look_at
@@ -73,9 +73,7 @@ def survey(tmp_path_factory) -> tuple[Path, Path, Scene]:
     scene = survey_scene()
     write_synthetic_database(folder / "database.db", scene, scene_points(scene, 60000, seed=0),
                              noise_px=0.5, outlier_ratio=0.2, seed=0, two_view_geometries=True)
-    (folder / "images").mkdir()
-    for name in scene.image_names:  # the mapper reads point colours from the images
-        cv2.imwrite(str(folder / "images" / name), np.zeros((8, 8), np.uint8))
+    write_placeholder_images(folder / "images", scene.image_names)
     return folder / "database.db", folder / "images", scene
 
 

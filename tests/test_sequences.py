@@ -1,6 +1,7 @@
-"""The mapper on a real driving sequence (KITTI odometry, forward motion, a stretch
-standing still): the pairs with most matches are neighbours without parallax, and the
-mapper must still start, with its default flags, and keep every frame in one model."""
+"""The mapper on driving sequences (forward motion, corners, stretches standing still),
+synthetic and real (KITTI odometry): the pairs with most matches are neighbours without
+parallax, and the mapper must still start, with its default flags, and keep every frame
+in one model near the truth."""
 
 from __future__ import annotations
 
@@ -15,6 +16,9 @@ import pytest
 
 from colmap_ext.evaluate import aligned_to_ground_truth, evaluate
 from colmap_ext.ground_truth import read_ground_truth
+from colmap_ext.synthetic import (driving_scene, points_for_keypoints, sequential_pairs,
+                                  write_ground_truth, write_placeholder_images,
+                                  write_synthetic_database)
 
 KITTI = "kitti03_600-800"
 # The sequence's last 51 frames: the car slows down and stands still from frame 782. The
@@ -27,6 +31,54 @@ R_ERR_MAX_DEG = 0.6
 ATE_MEDIAN_M = 0.2
 # SIFT features an image, a quarter of pycolmap's default: extraction and matching stay short.
 MAX_NUM_FEATURES = 2048
+
+# A synthetic drive of 120 frames (1 m a frame, a corner every 40 m or so, 8 frames standing
+# still every 50), 500 keypoints an image, 0.5 px noise, 20 % wrong matches, each frame
+# matched with the next 10 as COLMAP's sequential matching. Measured: R_err max 0.113 deg,
+# ATE median 0.018 m (COLMAP incremental on the same database: 11.4 deg, 1.03 m); bounds
+# about 3x ours.
+DRIVE_FRAMES = 120
+DRIVE_R_ERR_MAX_DEG = 0.3
+DRIVE_ATE_MEDIAN_M = 0.05
+
+
+def run_mapper(database: Path, images: Path, out: Path) -> pycolmap.Reconstruction:
+    """`colmap-ext mapper` with its default flags (seed 0); its one model."""
+    done = subprocess.run([sys.executable, "-m", "colmap_ext", "mapper", "--database_path",
+                           str(database), "--image_path", str(images), "--output_path", str(out),
+                           "--seed", "0"], capture_output=True, text=True, timeout=1200)
+    assert done.returncode == 0, done.stderr
+    summary = json.loads((out / "mapper_summary.json").read_text())
+    assert summary["num_models"] == 1
+    return pycolmap.Reconstruction(out / "0")
+
+
+def errors_from_truth(model: pycolmap.Reconstruction, truth) -> tuple[float, float]:
+    """R_err max (deg, evaluate's) and the median distance (m) of the camera centres from
+    the truth's after the similarity that best aligns them."""
+    report = evaluate(model, truth)
+    cameras, _ = aligned_to_ground_truth(model, truth)
+    ate = [np.linalg.norm(pose.inverse().translation - truth.poses[name].inverse().translation)
+           for name, pose in cameras.items()]
+    return report["R_err_max_deg"], float(np.median(ate))
+
+
+def test_mapper_maps_a_synthetic_drive_in_one_model(tmp_path):
+    """Forward motion, corners and stops (frames without baseline): every frame in one
+    model, with the default flags."""
+    scene = driving_scene(num_images=DRIVE_FRAMES, seed=0, block_length=40.0, stop_every=50,
+                          stop_frames=8)
+    write_synthetic_database(tmp_path / "database.db", scene,
+                             points_for_keypoints(scene, 500, seed=0, max_distance=40.0),
+                             noise_px=0.5, outlier_ratio=0.2, max_distance=40.0, seed=0,
+                             two_view_geometries=True, pairs=sequential_pairs(DRIVE_FRAMES, 10))
+    write_placeholder_images(tmp_path / "images", scene.image_names)
+    write_ground_truth(scene, tmp_path / "truth")
+    model = run_mapper(tmp_path / "database.db", tmp_path / "images", tmp_path / "out")
+    assert model.num_reg_images() == DRIVE_FRAMES
+    r_err_max, ate_median = errors_from_truth(model, read_ground_truth(tmp_path / "truth"))
+    assert r_err_max < DRIVE_R_ERR_MAX_DEG
+    assert ate_median < DRIVE_ATE_MEDIAN_M
 
 
 @pytest.fixture(scope="module")
@@ -63,19 +115,9 @@ def test_mapper_starts_on_forward_motion(kitti_database, tmp_path):
     """`colmap-ext mapper` with its default flags: one model of every frame, within the
     ground truth's GPS/INS accuracy."""
     database, images, truth, names = kitti_database
-    out = tmp_path / "out"
-    done = subprocess.run([sys.executable, "-m", "colmap_ext", "mapper", "--database_path",
-                           str(database), "--image_path", str(images), "--output_path", str(out),
-                           "--seed", "0"], capture_output=True, text=True, timeout=1200)
-    assert done.returncode == 0, done.stderr
-    summary = json.loads((out / "mapper_summary.json").read_text())
-    assert summary["num_models"] == 1
-    model = pycolmap.Reconstruction(out / "0")
+    model = run_mapper(database, images, tmp_path / "out")
     assert model.num_reg_images() == len(names)
     subset = type(truth)({name: truth.poses[name] for name in names}, truth.cameras)
-    report = evaluate(model, subset)
-    cameras, _ = aligned_to_ground_truth(model, subset)
-    ate = [np.linalg.norm(pose.inverse().translation - subset.poses[name].inverse().translation)
-           for name, pose in cameras.items()]
-    assert report["R_err_max_deg"] < R_ERR_MAX_DEG
-    assert np.median(ate) < ATE_MEDIAN_M
+    r_err_max, ate_median = errors_from_truth(model, subset)
+    assert r_err_max < R_ERR_MAX_DEG
+    assert ate_median < ATE_MEDIAN_M

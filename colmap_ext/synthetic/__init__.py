@@ -2,7 +2,8 @@
 
 - `ring_scene`, `trajectory_scene`, `driving_scene`: a calibrated camera, known poses, textured quads.
 - `render_images`: PNG views of a scene, ray-cast through the distorted camera model.
-- `write_par_file`, `write_ground_truth`: the true poses as Middlebury `*_par.txt` / COLMAP model.
+- `write_par_file`, `write_ground_truth`: the true poses as Middlebury `*_par.txt` / COLMAP model;
+  `write_placeholder_images`: black files under the images' names, for a database without images.
 - `scene_points`, `points_for_keypoints`, `write_synthetic_database`: a COLMAP database of
   projected points (keypoints, descriptors, matches with outliers), without images;
   `sequential_pairs` restricts its matches to a sequence's neighbours.
@@ -20,6 +21,7 @@ from colmap_ext.synthetic.render import (
     render_images,
     write_ground_truth,
     write_par_file,
+    write_placeholder_images,
 )
 from colmap_ext.synthetic.scene import Quad, Scene, default_camera, driving_scene, ring_scene, trajectory_scene
 
@@ -38,5 +40,6 @@ __all__ = [
     "trajectory_scene",
     "write_ground_truth",
     "write_par_file",
+    "write_placeholder_images",
     "write_synthetic_database",
 ]

@@ -219,6 +219,15 @@ def ground_truth_reconstruction(scene: Scene) -> pycolmap.Reconstruction:
     return reconstruction
 
 
+def write_placeholder_images(folder: str | Path, names: list[str]) -> None:
+    """A black 8x8 PNG under each image name: a synthetic database has no images, but
+    our mapper reads point colours from the image files."""
+    placeholder = cv2.imencode(".png", np.zeros((8, 8), np.uint8))[1].tobytes()
+    for name in names:
+        (Path(folder) / name).parent.mkdir(parents=True, exist_ok=True)
+        (Path(folder) / name).write_bytes(placeholder)
+
+
 def write_ground_truth(scene: Scene, path: str | Path) -> None:
     """Write the ground-truth COLMAP model (binary cameras/images/rigs/frames/points3D) into directory `path`."""
     path = Path(path)
