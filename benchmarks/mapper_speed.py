@@ -61,6 +61,7 @@ class PreparedSet:
     num_images: int
     camera_model: str = ""  # the known intrinsics, for --end_to_end
     camera_params: str = ""
+    sequential_overlap: int = 0  # end to end, COLMAP's sequential matching (0: exhaustive)
 
 
 def colmap_worker(args: argparse.Namespace) -> int:
@@ -72,13 +73,18 @@ def colmap_worker(args: argparse.Namespace) -> int:
                                            fix_intrinsics_in_database)
 
     pycolmap.logging.minloglevel = int(pycolmap.logging.Level.WARNING)
-    if args.camera_model:  # end to end: COLMAP's own extraction and exhaustive matching first
+    if args.camera_model:  # end to end: COLMAP's own extraction and matching first
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = args.camera_model
         reader.camera_params = args.camera_params
         pycolmap.extract_features(args.database, args.images, reader_options=reader,
                                   camera_mode=pycolmap.CameraMode.SINGLE, device=pycolmap.Device.cpu)
-        pycolmap.match_exhaustive(args.database, device=pycolmap.Device.cpu)
+        if args.sequential_overlap:
+            pairing = pycolmap.SequentialPairingOptions(overlap=args.sequential_overlap)
+            pycolmap.match_sequential(args.database, pairing_options=pairing,
+                                      device=pycolmap.Device.cpu)
+        else:
+            pycolmap.match_exhaustive(args.database, device=pycolmap.Device.cpu)
     camera_ids, num_images = fix_intrinsics_in_database(Path(args.database))
     Path(args.output).mkdir(parents=True, exist_ok=True)
     if args.worker == "colmap_incremental":
@@ -93,8 +99,9 @@ def colmap_worker(args: argparse.Namespace) -> int:
 def mapper_command(mapper: str, prepared: PreparedSet, folder: Path, seed: int,
                    end_to_end: bool) -> tuple[list[str], Path]:
     """The command of one run in `folder`, and the folder its models end up in. End to end,
-    from the images: ours `colmap-ext reconstruct`, COLMAP's extraction, exhaustive
-    matching and mapper; otherwise each mapper on its copy of the prepared database."""
+    from the images: ours `colmap-ext reconstruct`, COLMAP's extraction, exhaustive (or
+    the set's sequential) matching and mapper; otherwise each mapper on its copy of the
+    prepared database."""
     database = folder / "database.db"
     if not end_to_end:
         shutil.copyfile(prepared.database, database)
@@ -107,25 +114,26 @@ def mapper_command(mapper: str, prepared: PreparedSet, folder: Path, seed: int,
         return [executable, "mapper", "--database_path", str(database), "--image_path",
                 str(prepared.image_path), "--output_path", str(folder / "out"),
                 "--seed", str(seed)], folder / "out"
-    camera = ["--camera_model", prepared.camera_model, "--camera_params", prepared.camera_params] \
-        if end_to_end else []
+    camera = ["--camera_model", prepared.camera_model, "--camera_params", prepared.camera_params,
+              "--sequential_overlap", str(prepared.sequential_overlap)] if end_to_end else []
     return [sys.executable, str(SCRIPT), "--worker", mapper, "--database", str(database),
             "--images", str(prepared.image_path), "--output", str(folder / "out"),
             "--seed", str(seed), *camera], folder / "out"
 
 
 def timed_run(command: list[str], log: Path) -> dict:
-    """Wall seconds, peak resident MiB and exit code of one child process. The peak comes
-    from GNU time (Debian's `time`): a child forked from this process would count this
-    process's own memory as its peak."""
-    peak = log.with_suffix(".peak")
+    """Wall seconds, CPU seconds (user and system), peak resident MiB and exit code of one
+    child process, from GNU time (Debian's `time`): a child forked from this process would
+    count this process's own memory as its peak."""
+    usage = log.with_suffix(".usage")
     with log.open("w") as out:
         start = time.perf_counter()
-        process = subprocess.run(["/usr/bin/time", "-f", "%M", "-o", str(peak), *command],
+        process = subprocess.run(["/usr/bin/time", "-f", "%M %U %S", "-o", str(usage), *command],
                                  stdout=out, stderr=subprocess.STDOUT)
         seconds = time.perf_counter() - start
-    return {"time_s": seconds, "peak_mib": int(peak.read_text().split()[-1]) / 1024,
-            "exit_code": process.returncode}
+    peak_kib, user_s, system_s = usage.read_text().split()[-3:]
+    return {"time_s": seconds, "cpu_s": float(user_s) + float(system_s),
+            "peak_mib": int(peak_kib) / 1024, "exit_code": process.returncode}
 
 
 # ---------------------------------------------------------------------------------------
@@ -254,10 +262,11 @@ def summarize(results: dict[str, dict]) -> None:
         ok = [r for r in entry["runs"] if r["exit_code"] == 0]
         entry["time_s"] = statistics.median(r["time_s"] for r in ok) if ok else None
         entry["time_range"] = (min(r["time_s"] for r in ok), max(r["time_s"] for r in ok)) if ok else None
+        entry["cpu_s"] = statistics.median(r["cpu_s"] for r in ok) if ok else None
         entry["peak_mib"] = statistics.median(r["peak_mib"] for r in ok) if ok else None
     reference = results.get("colmap_incremental", {})
     for entry in results.values():
-        for key in ("time_s", "peak_mib"):
+        for key in ("time_s", "cpu_s", "peak_mib"):
             if entry.get(key) and reference.get(key):
                 entry[f"{key}_ratio"] = entry[key] / reference[key]
 
@@ -337,6 +346,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output", help=argparse.SUPPRESS)
     parser.add_argument("--camera_model", help=argparse.SUPPRESS)
     parser.add_argument("--camera_params", help=argparse.SUPPRESS)
+    parser.add_argument("--sequential_overlap", type=int, default=0, help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
         return colmap_worker(args)

@@ -13,16 +13,19 @@ Sets (--sets, all by default):
 - loop500: a synthetic drive round a block, its last frame one step behind its first; the
   last frames are matched with the first ones too.
 
+With --end_to_end (kitti03_600-800 alone), each run starts from the images: ours
+`colmap-ext reconstruct`, COLMAP's SIFT extraction, sequential matching and mapper.
+
 Per set, --runs rounds; in each round every mapper runs once, the order turning from round
 to round. Per mapper: frames in the largest model / all, the number of models, R_err max
 and median (`colmap-ext evaluate`'s), ATE median and max (metres: camera centres after the
-similarity that best aligns them onto the ground truth), and the medians of wall time and
-peak memory, their ratios to COLMAP incremental's, and per frame, so that the synthetic
-sizes show how the cost grows. A mapper that exits with an error is a failed row.
+similarity that best aligns them onto the ground truth), and the medians of wall time,
+CPU time (user and system) and peak memory, their ratios to COLMAP incremental's, and per
+frame, so that the synthetic sizes show how the cost grows. A mapper that exits with an error is a failed row.
 
     python benchmarks/sequences.py [--sets kitti03_600-800,drive200,...] [--runs 3] [--seed 0]
         [--mappers ours,colmap_incremental,colmap_global] [--data DIR] [--work_dir DIR]
-        [--markdown BENCHMARKS.md] [--section sequences]
+        [--markdown BENCHMARKS.md] [--section sequences] [--end_to_end]
 """
 
 from __future__ import annotations
@@ -65,7 +68,7 @@ def prepare_kitti(data: Path, work: Path) -> tuple[PreparedSet, str]:
         stats = build_database(dataset, database, sequential_overlap=SEQUENTIAL_OVERLAP)
     prepared = PreparedSet(KITTI, database, dataset.image_path, dataset.ground_truth,
                            len(dataset.image_names), dataset.camera_model,
-                           ",".join(repr(p) for p in dataset.camera_params))
+                           ",".join(repr(p) for p in dataset.camera_params), SEQUENTIAL_OVERLAP)
     note = f"{KITTI}: {prepared.num_images} frames, pycolmap SIFT, {dataset.camera_model} known, " \
            f"sequential matching (overlap {SEQUENTIAL_OVERLAP})"
     if stats:
@@ -137,10 +140,11 @@ def failure(log: Path) -> str:
     return lines[-1] if lines else "no output"
 
 
-def measure(prepared: PreparedSet, mappers: list[str], runs: int, seed: int, work: Path) -> dict[str, dict]:
+def measure(prepared: PreparedSet, mappers: list[str], runs: int, seed: int, work: Path,
+            end_to_end: bool) -> dict[str, dict]:
     from colmap_ext.ground_truth import read_ground_truth
 
-    results, models = run_rounds(prepared, mappers, runs, seed, work)
+    results, models = run_rounds(prepared, mappers, runs, seed, work, end_to_end)
     summarize(results)
     truth = read_ground_truth(prepared.ground_truth)
     for mapper, entry in results.items():
@@ -155,8 +159,8 @@ def table(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]]) -> str:
 
     headings = ["set", "mapper", "frames in largest / all", "models", "R_err max / median [deg]",
                 "ATE median / max [m]", "time [s] median (min-max)", "time / COLMAP inc.",
-                "peak memory [MiB]", "memory / COLMAP inc.", "time / frame [ms]",
-                "memory / frame [KiB]"]
+                "CPU [s]", "CPU / COLMAP inc.", "peak memory [MiB]", "memory / COLMAP inc.",
+                "time / frame [ms]", "memory / frame [KiB]"]
     rows = []
     for name, (prepared, results) in all_results.items():
         for mapper, entry in results.items():
@@ -174,7 +178,7 @@ def table(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]]) -> str:
                 cell("{:.3f} / {:.3f}", "ate_median", "ate_max"),
                 "failed" if time_s is None else
                 f"{time_s:.1f} ({entry['time_range'][0]:.1f}-{entry['time_range'][1]:.1f})",
-                cell("{:.2f}x", "time_s_ratio"),
+                cell("{:.2f}x", "time_s_ratio"), cell("{:.0f}", "cpu_s"), cell("{:.2f}x", "cpu_s_ratio"),
                 "–" if peak is None else f"{peak:.0f}", cell("{:.2f}x", "peak_mib_ratio"),
                 "–" if time_s is None else f"{1000 * time_s / prepared.num_images:.1f}",
                 "–" if peak is None else f"{1024 * peak / prepared.num_images:.0f}"])
@@ -186,16 +190,22 @@ def section(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]], notes: 
     from accuracy import machine_line, versions_line
 
     flags = f" --mappers {args.mappers}" if args.mappers != ",".join(MAPPERS) else ""
+    flags += " --end_to_end" if args.end_to_end else ""
     evaluation_notes = [f"{name}, {mapper}: not evaluated: {entry['evaluation_error']}"
                         for name, (_, results) in all_results.items()
                         for mapper, entry in results.items() if "evaluation_error" in entry]
     return "\n".join([
-        "## Sequences: ours against COLMAP's mappers", "",
+        "## Sequences: ours against COLMAP's " + ("pipelines, end to end" if args.end_to_end
+                                                  else "mappers"), "",
         f"`python benchmarks/sequences.py --sets {','.join(all_results)} --runs {args.runs}{flags}` "
         f"on {datetime.date.today().isoformat()} ({elapsed_s / 60:.1f} min in all), seed {args.seed}.",
         f"- machine: {machine_line()}", f"- versions: {versions_line()}",
         *[f"- {note}" for note in notes],
-        "- each mapper a whole process on a fresh copy of the same database, the order turning "
+        ("- each pipeline a whole process from the images: `colmap-ext reconstruct` (its default "
+         "matcher: sequential beyond 100 images); COLMAP's SIFT extraction, sequential matching "
+         f"(overlap {SEQUENTIAL_OVERLAP}) and incremental or global mapper"
+         if args.end_to_end else
+         "- each mapper a whole process on a fresh copy of the same database") + ", the order turning "
         "each round; medians over the rounds; ratios to COLMAP incremental's medians. The last "
         "round's largest model against the ground truth: R_err as `colmap-ext evaluate`; ATE: "
         "distances of the camera centres to the truth's after a similarity alignment.",
@@ -209,6 +219,9 @@ def main(argv: list[str] | None = None) -> int:
                         help=f"folder holding {KITTI} (default: $COLMAP_EXT_DATA)")
     parser.add_argument("--sets", default=",".join([KITTI, *DRIVES]))
     add_run_arguments(parser, section="sequences")
+    parser.add_argument("--end_to_end", action="store_true",
+                        help=f"{KITTI} from its images: `colmap-ext reconstruct` against COLMAP's "
+                             "extraction, sequential matching and mapper")
     args = parser.parse_args(argv)
     names = [n for n in args.sets.split(",") if n]
     mappers = [m for m in args.mappers.split(",") if m]
@@ -217,6 +230,8 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown sets or mappers: {', '.join(unknown) or args.mappers}")
     if KITTI in names and not args.data:
         parser.error(f"{KITTI} needs --data or $COLMAP_EXT_DATA")
+    if args.end_to_end and names != [KITTI]:
+        parser.error(f"--end_to_end needs images: only {KITTI} has them")
 
     from accuracy import update_section, work_folder
 
@@ -228,7 +243,8 @@ def main(argv: list[str] | None = None) -> int:
             prepared, note = prepare_kitti(Path(args.data), work) if name == KITTI \
                 else prepare_drive(name, work, args.seed)
             notes.append(note)
-            all_results[name] = (prepared, measure(prepared, mappers, args.runs, args.seed, work))
+            all_results[name] = (prepared, measure(prepared, mappers, args.runs, args.seed, work,
+                                                   args.end_to_end))
             body = section(all_results, notes, args, time.perf_counter() - start)
             if args.markdown:  # after every set: a long run keeps what it measured
                 update_section(Path(args.markdown), args.section, body)
