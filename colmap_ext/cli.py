@@ -8,15 +8,14 @@ step is one call from Python and one command from the shell.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import importlib
-import os
 import signal
 import sys
 from typing import NoReturn
 
 from colmap_ext import __version__
 from colmap_ext.errors import Interrupted, UserError
+from colmap_ext.memory import limit_malloc_arenas
 
 # subcommand -> (module, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -37,23 +36,6 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "demo": ("colmap_ext.demo", "Render a synthetic ring scene, reconstruct it and "
              "measure the result."),
 }
-
-
-# glibc's mallopt parameter for the most malloc arenas.
-M_ARENA_MAX = -8
-
-
-def limit_malloc_arenas(count: int = 2) -> None:
-    """At most `count` malloc arenas, as MALLOC_ARENA_MAX would (unless the user set it).
-    glibc gives threads that allocate arenas of their own, up to eight per core, and
-    memory freed in one stays resident: with Ceres's and the descriptor search's
-    threads that is tens of MiB of peak memory (BENCHMARKS.md). Not glibc: nothing."""
-    if "MALLOC_ARENA_MAX" in os.environ:
-        return
-    try:
-        ctypes.CDLL(None).mallopt(M_ARENA_MAX, count)
-    except (OSError, AttributeError):
-        pass
 
 
 def _raise_interrupted(signum: int, frame: object) -> None:

@@ -77,6 +77,12 @@ class DescriptorReader(Mapping[int, np.ndarray]):
                 self._bytes -= self._kept.popitem(last=False)[1].nbytes
             return descriptors
 
+    def release(self) -> None:
+        """Give up the descriptors kept (they are read again when asked)."""
+        with self._lock:
+            self._kept.clear()
+            self._bytes = 0
+
     def shapes(self) -> dict[int, tuple[int, int, int]]:
         """image id -> (rows, columns, bytes) of each stored descriptor array."""
         with self._lock:

@@ -13,7 +13,7 @@ import pytest
 # glibc reports (malloc_info's <heap> elements).
 COUNT_ARENAS = """
 import ctypes, re, sys, threading
-from colmap_ext.cli import limit_malloc_arenas
+from colmap_ext.memory import limit_malloc_arenas
 if sys.argv[1] == "limit":
     limit_malloc_arenas()
 libc = ctypes.CDLL(None)

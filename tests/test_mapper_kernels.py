@@ -164,6 +164,13 @@ def test_pair_store_gives_up_the_oldest_pairs_beyond_its_memory() -> None:
     store.prefetch(1, [0, 2])  # (1, 0) is kept: (1, 2) alone is searched
     assert list(store.pairs.items) == [(1, 2), (2, 1)] and list(store.units.items) == [2]
     store.close()
+    # Released (a model's registration over), it keeps nothing and searches again.
+    store.release()
+    assert not store.pairs.items and store.pairs.bytes == 0
+    assert not store.units.items and store.units.bytes == 0
+    index, _ = store(0, 1)
+    assert (index == brute_force_nearest(features[0], features[1], 3)[0]).all()
+    store.close()
 
 
 def test_pairs_beyond_the_search_budget_take_the_database_matches() -> None:

@@ -107,6 +107,10 @@ class LeastRecentlyUsed:
         self.items.move_to_end(key)
         return self.items[key]
 
+    def clear(self) -> None:
+        self.items.clear()
+        self.bytes = 0
+
     def keep(self, key: Hashable, arrays: tuple[np.ndarray, ...]) -> None:
         if key in self.items:
             self.bytes -= sum(array.nbytes for array in self.items.pop(key))
@@ -156,6 +160,15 @@ class NearestDescriptors:
         if self._pool is not None:
             self._pool.shutdown()
             self._pool = None
+
+    def release(self) -> None:
+        """Give up the searches, unit descriptors and descriptors kept: a model's last
+        adjustments and retriangulation ask for none, and they are its peak of memory.
+        A later search reads and searches again."""
+        self.pairs.clear()
+        self.units.clear()
+        if hasattr(self.descriptors, "release"):  # a DescriptorReader, not a dict
+            self.descriptors.release()
 
     def __call__(self, image_id: int, other_id: int, kps: np.ndarray | None = None
                  ) -> tuple[np.ndarray, np.ndarray]:

@@ -32,6 +32,7 @@ from colmap_ext.mapper.registration import (Correspondences, Outcome,
                                             searches_descriptors, track_correspondences)
 from colmap_ext.mapper.triangulation import complete_tracks, merge_tracks, triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
+from colmap_ext.memory import return_freed_memory
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
 from colmap_ext.timing import StageTimer
 
@@ -90,6 +91,11 @@ class IncrementalMapper:
             return False
         while self._register_next():
             pass
+        # Registration is over: what it kept for matching is memory the model's last
+        # adjustments need.
+        self.model.nearest.release()
+        self._matched_keypoints.clear()
+        return_freed_memory()
         if self.final_adjustment:
             # Retriangulation, where it follows, ends the model on an exact adjustment.
             self.adjuster.global_adjustment(
