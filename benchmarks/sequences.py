@@ -11,17 +11,24 @@ Sets (--sets, all by default):
   10 frames every 300), about 1000 keypoints an image within 40 m, 0.5 px noise, 20 % wrong
   matches, verified geometries, each frame matched with the next 10; placeholder images;
 - loop500: a synthetic drive round a block, its last frame one step behind its first; the
-  last frames are matched with the first ones too.
+  last frames are matched with the first ones too;
+- stereo_drive200, stereo_drive800: the drives of drive200 and drive800 seen by a KITTI-like
+  stereo rig (two forward-looking cameras 0.54 m apart, images left/ and right/), its rig
+  configuration JSON applied to the database as COLMAP's `apply_rig_config` does; each image
+  matched with the images of the next 10 frames and its own frame's other image (COLMAP's
+  sequential matching of a rig). The rig's baseline makes the models metric: their centres
+  are also compared after a rigid alignment (ATE rigid).
 
 With --end_to_end (kitti03_600-800 alone), each run starts from the images: ours
 `colmap-ext reconstruct`, COLMAP's SIFT extraction, sequential matching and mapper.
 
 Per set, --runs rounds; in each round every mapper runs once, the order turning from round
 to round. Per mapper: frames in the largest model / all, the number of models, R_err max
-and median (`colmap-ext evaluate`'s), ATE median and max (metres: camera centres after the
-similarity that best aligns them onto the ground truth), and the medians of wall time,
-CPU time (user and system) and peak memory, their ratios to COLMAP incremental's, and per
-frame, so that the synthetic sizes show how the cost grows. A mapper that exits with an error is a failed row.
+and median (`colmap-ext evaluate`'s, over the images), ATE median and max (metres: camera
+centres after the similarity that best aligns them onto the ground truth; for a rig, after
+the rigid transform too), and the medians of wall time, CPU time (user and system) and peak
+memory, their ratios to COLMAP incremental's, and per frame, so that the synthetic sizes
+show how the cost grows. A mapper that exits with an error is a failed row.
 
     python benchmarks/sequences.py [--sets kitti03_600-800,drive200,...] [--runs 3] [--seed 0]
         [--mappers ours,colmap_incremental,colmap_global] [--data DIR] [--work_dir DIR]
@@ -48,9 +55,13 @@ KITTI = "kitti03_600-800"
 SEQUENTIAL_OVERLAP = 10  # frames each frame is matched with, as COLMAP's sequential matching
 KEYPOINTS_PER_IMAGE = 1000
 MAX_DISTANCE = 40.0  # metres: farther points are not observed
+STEREO_BASELINE = 0.54  # metres between the stereo drives' cameras (KITTI's)
+STEREO_PREFIXES = ["left/", "right/"]
 DRIVES = {"drive200": {"num_images": 200}, "drive800": {"num_images": 800},
           "drive2000": {"num_images": 2000},
-          "drive10000": {"num_images": 10000}, "loop500": {"num_images": 500, "loop": True}}
+          "drive10000": {"num_images": 10000}, "loop500": {"num_images": 500, "loop": True},
+          "stereo_drive200": {"num_images": 200, "stereo": True},
+          "stereo_drive800": {"num_images": 800, "stereo": True}}
 
 
 def prepare_kitti(data: Path, work: Path) -> tuple[PreparedSet, str]:
@@ -79,38 +90,50 @@ def prepare_kitti(data: Path, work: Path) -> tuple[PreparedSet, str]:
 
 
 def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
-    """A synthetic drive's database with placeholder images, and a line saying what it holds."""
+    """A synthetic drive's database with placeholder images (a stereo drive's with its rig
+    configuration applied), and a line saying what it holds."""
     import numpy as np
 
-    from colmap_ext.synthetic import (driving_scene, points_for_keypoints, sequential_pairs,
-                                      write_ground_truth, write_placeholder_images,
+    from colmap_ext.rigs import apply_rig_config, read_rig_config
+    from colmap_ext.synthetic import (driving_scene, points_for_keypoints, rig_scene,
+                                      sequential_pairs, side_by_side_rig, write_ground_truth,
+                                      write_placeholder_images, write_rig_config,
                                       write_synthetic_database)
 
     folder = work / name
-    scene = driving_scene(seed=seed, **DRIVES[name])
-    note = f"{name}: {scene.num_images} frames" + (", a loop" if DRIVES[name].get("loop") else "")
+    options = dict(DRIVES[name])
+    stereo = options.pop("stereo", False)
+    drive = driving_scene(seed=seed, **options)
+    cams_from_rig = side_by_side_rig(len(STEREO_PREFIXES), STEREO_BASELINE)
+    scene = rig_scene(drive, cams_from_rig, STEREO_PREFIXES) if stereo else drive
+    note = f"{name}: {drive.num_images} frames" + (", a loop" if options.get("loop") else "") + \
+        (f" of a stereo rig ({STEREO_BASELINE} m)" if stereo else "")
     if not (folder / "database.db").exists():
         start = time.perf_counter()
         shutil.rmtree(folder, ignore_errors=True)
         (folder / "images").mkdir(parents=True)
         points = points_for_keypoints(scene, KEYPOINTS_PER_IMAGE, seed=seed, max_distance=MAX_DISTANCE)
-        pairs = sequential_pairs(scene.num_images, SEQUENTIAL_OVERLAP,
-                                 closed=bool(DRIVES[name].get("loop")))
+        pairs = sequential_pairs(drive.num_images, SEQUENTIAL_OVERLAP, closed=bool(options.get("loop")),
+                                 images_per_frame=len(STEREO_PREFIXES) if stereo else 1)
         truth = write_synthetic_database(folder / "database.db", scene, points, noise_px=0.5,
                                          outlier_ratio=0.2, max_distance=MAX_DISTANCE, seed=seed,
                                          two_view_geometries=True, pairs=pairs)
+        if stereo:
+            write_rig_config(folder / "rig.json", scene.camera, cams_from_rig, STEREO_PREFIXES)
+            apply_rig_config(folder / "database.db", read_rig_config(folder / "rig.json"))
         write_placeholder_images(folder / "images", scene.image_names)
         write_ground_truth(scene, folder / "ground_truth")
         keypoints = np.mean([len(ids) for ids in truth.point_ids])
         note += (f": {keypoints:.0f} keypoints an image, {len(truth.matches)} matched pairs; "
                  f"written in {time.perf_counter() - start:.0f} s")
     return PreparedSet(name, folder / "database.db", folder / "images", folder / "ground_truth",
-                       scene.num_images), note
+                       drive.num_images), note
 
 
-def evaluate_models(output: Path, truth) -> dict:
+def evaluate_models(output: Path, truth, metric: bool) -> dict:
     """The number of models in `output`, and the largest one against the ground truth:
-    frames, R_err (evaluate's) and ATE (centres after a similarity onto the truth's)."""
+    frames, R_err (evaluate's) and ATE (centres after a similarity onto the truth's; a
+    `metric` model's after a rigid transform too)."""
     import numpy as np
 
     from colmap_ext.errors import UserError
@@ -120,17 +143,19 @@ def evaluate_models(output: Path, truth) -> dict:
     if model is None or model.num_reg_images() < 3:
         return {"error": "no model"}
     entry = {"num_models": sum(1 for folder in output.iterdir() if (folder / "images.bin").is_file()),
-             "num_registered": model.num_reg_images()}
+             "num_registered": model.num_reg_frames()}
     try:
         report = evaluate(model, truth)
     except UserError as error:
         entry["evaluation_error"] = str(error)
     else:
         entry.update(R_err_max_deg=report["R_err_max_deg"], R_err_median_deg=report["R_err_median_deg"])
-    cameras, _ = aligned_to_ground_truth(model, truth)
-    errors = [np.linalg.norm(pose.inverse().translation - truth.poses[name].inverse().translation)
-              for name, pose in cameras.items()]
-    entry.update(ate_median=float(np.median(errors)), ate_max=float(np.max(errors)))
+    alignments = {"ate": True, "ate_rigid": False} if metric else {"ate": True}  # key: with scale
+    for key, with_scale in alignments.items():
+        cameras, _ = aligned_to_ground_truth(model, truth, with_scale=with_scale)
+        errors = [np.linalg.norm(pose.inverse().translation - truth.poses[name].inverse().translation)
+                  for name, pose in cameras.items()]
+        entry.update({f"{key}_median": float(np.median(errors)), f"{key}_max": float(np.max(errors))})
     return entry
 
 
@@ -148,7 +173,8 @@ def measure(prepared: PreparedSet, mappers: list[str], runs: int, seed: int, wor
     summarize(results)
     truth = read_ground_truth(prepared.ground_truth)
     for mapper, entry in results.items():
-        entry.update(evaluate_models(models[mapper], truth))
+        entry.update(evaluate_models(models[mapper], truth,
+                                     metric=bool(DRIVES.get(prepared.name, {}).get("stereo"))))
         if entry["runs"][-1]["exit_code"] != 0:
             entry["error"] = failure(models[mapper].parent / "log.txt")
     return results
@@ -158,8 +184,9 @@ def table(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]]) -> str:
     from accuracy import markdown_table
 
     headings = ["set", "mapper", "frames in largest / all", "models", "R_err max / median [deg]",
-                "ATE median / max [m]", "time [s] median (min-max)", "time / COLMAP inc.",
-                "CPU [s]", "CPU / COLMAP inc.", "peak memory [MiB]", "memory / COLMAP inc.",
+                "ATE median / max [m]", "ATE rigid median / max [m]", "time [s] median (min-max)",
+                "time / COLMAP inc.", "CPU [s]", "CPU / COLMAP inc.", "peak memory [MiB]",
+                "memory / COLMAP inc.",
                 "time / frame [ms]", "memory / frame [KiB]"]
     rows = []
     for name, (prepared, results) in all_results.items():
@@ -176,6 +203,7 @@ def table(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]]) -> str:
                 name, mapper, frames, cell("{}", "num_models"),
                 cell("{:.3f} / {:.3f}", "R_err_max_deg", "R_err_median_deg"),
                 cell("{:.3f} / {:.3f}", "ate_median", "ate_max"),
+                cell("{:.3f} / {:.3f}", "ate_rigid_median", "ate_rigid_max"),
                 "failed" if time_s is None else
                 f"{time_s:.1f} ({entry['time_range'][0]:.1f}-{entry['time_range'][1]:.1f})",
                 cell("{:.2f}x", "time_s_ratio"), cell("{:.0f}", "cpu_s"), cell("{:.2f}x", "cpu_s_ratio"),
@@ -208,7 +236,9 @@ def section(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]], notes: 
          "- each mapper a whole process on a fresh copy of the same database") + ", the order turning "
         "each round; medians over the rounds; ratios to COLMAP incremental's medians. The last "
         "round's largest model against the ground truth: R_err as `colmap-ext evaluate`; ATE: "
-        "distances of the camera centres to the truth's after a similarity alignment.",
+        "distances of the camera centres to the truth's after a similarity alignment (ATE "
+        "rigid, on a rig's metric sets: after a rigid one, no scale fitted); a stereo frame is "
+        "two images.",
         *[f"- {note}" for note in evaluation_notes], "", table(all_results)])
 
 

@@ -247,11 +247,12 @@ def align_similarity(source: np.ndarray, target: np.ndarray) -> np.ndarray:
     return fit_similarity(source, target) * source
 
 
-def aligned_to_ground_truth(reconstruction: pycolmap.Reconstruction,
-                            ground_truth: GroundTruth) -> tuple[dict[str, pycolmap.Rigid3d], np.ndarray]:
+def aligned_to_ground_truth(reconstruction: pycolmap.Reconstruction, ground_truth: GroundTruth,
+                            with_scale: bool = True) -> tuple[dict[str, pycolmap.Rigid3d], np.ndarray]:
     """The registered cameras (cam_from_world by ground-truth name) and the points (n,3, in
     point id order) of the model, moved into the ground truth's world by the similarity of
-    C_err_aligned, for drawing them over the ground truth.
+    C_err_aligned, for drawing them over the ground truth; without `with_scale`, by the
+    rigid transform that best aligns the centres (a metric model: a rig's, at its scale).
 
     The similarity is fitted to world centres rather than to centres relative to the first
     camera, which moves both sides rigidly and so leaves the fit's residuals unchanged.
@@ -260,7 +261,8 @@ def aligned_to_ground_truth(reconstruction: pycolmap.Reconstruction,
     names = [name for name in ground_truth.poses if name in matches]
     gt_from_model = fit_similarity(
         np.array([matches[name].projection_center() for name in names]),
-        np.array([ground_truth.poses[name].inverse().translation for name in names]))
+        np.array([ground_truth.poses[name].inverse().translation for name in names]),
+        with_scale=with_scale)
     cameras = {name: gt_from_model.transform_camera_world(matches[name].cam_from_world())
                for name in names}
     xyz = [point.xyz for _, point in sorted(reconstruction.points3D.items())]  # in id order

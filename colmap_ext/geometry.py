@@ -37,9 +37,10 @@ def mean_rotation(rotations: np.ndarray) -> np.ndarray:
 
 
 def fit_similarity(source: np.ndarray, target: np.ndarray,
-                   rotation: np.ndarray | None = None) -> pycolmap.Sim3d:
+                   rotation: np.ndarray | None = None, with_scale: bool = True) -> pycolmap.Sim3d:
     """The least-squares similarity taking `source` points (n,3) onto `target` (Umeyama
-    1991); with `rotation` given, its scale and translation alone.
+    1991); with `rotation` given, its scale and translation alone; without `with_scale`,
+    scale 1: the rigid transform, which keeps a metric model's errors in metres.
 
     Not pycolmap.estimate_sim3d: it refuses 2 points (pycolmap 4.2.1: "Check failed:
     src.size() >= kMinNumSamples (2 vs. 3)"), which a 2-view model under evaluation and
@@ -49,7 +50,8 @@ def fit_similarity(source: np.ndarray, target: np.ndarray,
     if rotation is None:
         rotation = nearest_rotation(offsets_target.T @ offsets_source)
     moved = offsets_source @ rotation.T
-    scale = np.sum(offsets_target * moved) / max(np.sum(offsets_source ** 2), 1e-300)
+    scale = np.sum(offsets_target * moved) / max(np.sum(offsets_source ** 2), 1e-300) \
+        if with_scale else 1.0
     return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation),
                           mean_target - scale * rotation @ mean_source)
 

@@ -19,6 +19,7 @@ from colmap_ext.synthetic.database import (
     scene_points,
     sequential_pairs,
     sift_like,
+    write_rig_config,
     write_synthetic_database,
 )
 from colmap_ext.synthetic.render import pixel_grid, render_images, write_ground_truth, write_par_file
@@ -28,7 +29,9 @@ from colmap_ext.synthetic.scene import (
     default_camera,
     driving_scene,
     image_rays,
+    rig_scene,
     ring_scene,
+    side_by_side_rig,
     trajectory_scene,
 )
 
@@ -295,6 +298,41 @@ def test_drive_database_has_the_keypoints_and_pairs_asked_for(tmp_path: Path) ->
 def test_sequential_pairs_wrap_round_a_loop() -> None:
     assert sequential_pairs(5, 2) == {(0, 1), (0, 2), (1, 2), (1, 3), (2, 3), (2, 4), (3, 4)}
     assert sequential_pairs(5, 2, closed=True) == sequential_pairs(5, 2) | {(0, 3), (0, 4), (1, 4)}
+
+
+def test_sequential_pairs_of_a_rig_pair_every_image_of_the_next_frames_and_its_own() -> None:
+    # Frames of two images: 0 = (0, 1), 1 = (2, 3), 2 = (4, 5).
+    assert sequential_pairs(3, 1, images_per_frame=2) == {
+        (0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3), (2, 4), (2, 5), (3, 4), (3, 5), (4, 5)}
+
+
+def test_a_rig_scene_is_a_stereo_pair_at_every_pose_with_a_camera_per_folder(tmp_path: Path) -> None:
+    """rig_scene's images, the rig's cameras at each pose of the drive; its database has a
+    camera per image folder and, with its rig configuration applied, one frame a pose."""
+    from colmap_ext.rigs import apply_rig_config, read_rig_config
+
+    drive = driving_scene(30, seed=4)
+    cams_from_rig = side_by_side_rig(2, 0.54)
+    scene = rig_scene(drive, cams_from_rig, ["left/", "right/"])
+    assert scene.image_names[:3] == ["left/drive00000.png", "right/drive00000.png", "left/drive00001.png"]
+    for rig_from_world, left, right in zip(drive.cams_from_world, scene.cams_from_world[::2],
+                                           scene.cams_from_world[1::2]):
+        np.testing.assert_allclose(left.matrix(), rig_from_world.matrix(), atol=1e-12)
+        right_of_left = left.rotation.matrix()[0]  # the camera's x axis in the world
+        np.testing.assert_allclose(right.inverse().translation - left.inverse().translation,
+                                   0.54 * right_of_left, atol=1e-12)
+    write_synthetic_database(tmp_path / "rig.db", scene, points_for_keypoints(scene, 300, seed=4),
+                             pairs=sequential_pairs(drive.num_images, 2, images_per_frame=2))
+    write_rig_config(tmp_path / "rig.json", scene.camera, cams_from_rig, ["left/", "right/"])
+    apply_rig_config(tmp_path / "rig.db", read_rig_config(tmp_path / "rig.json"))
+    with pycolmap.Database.open(tmp_path / "rig.db") as db:
+        cameras = {image.name.partition("/")[0]: image.camera_id for image in db.read_all_images()}
+        (rig,) = db.read_all_rigs()
+        frames = db.read_all_frames()
+    assert len(set(cameras.values())) == 2
+    assert rig.ref_sensor_id.id == cameras["left"] and len(frames) == drive.num_images
+    right = pycolmap.sensor_t(pycolmap.SensorType.CAMERA, cameras["right"])
+    np.testing.assert_allclose(rig.sensor_from_rig(right).matrix(), cams_from_rig[1].matrix())
 
 
 def test_nearby_points_are_found_without_scanning() -> None:

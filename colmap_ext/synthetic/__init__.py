@@ -1,12 +1,14 @@
 """Synthetic data with known ground truth: scenes, rendered images, and COLMAP databases.
 
-- `ring_scene`, `trajectory_scene`, `driving_scene`: a calibrated camera, known poses, textured quads.
+- `ring_scene`, `trajectory_scene`, `driving_scene`: a calibrated camera, known poses, textured quads;
+  `rig_scene`: a rig's cameras (`side_by_side_rig`) at a scene's poses.
 - `render_images`: PNG views of a scene, ray-cast through the distorted camera model.
 - `write_par_file`, `write_ground_truth`: the true poses as Middlebury `*_par.txt` / COLMAP model;
   `write_placeholder_images`: black files under the images' names, for a database without images.
 - `scene_points`, `points_for_keypoints`, `write_synthetic_database`: a COLMAP database of
   projected points (keypoints, descriptors, matches with outliers), without images;
-  `sequential_pairs` restricts its matches to a sequence's neighbours.
+  `sequential_pairs` restricts its matches to a sequence's neighbours; `write_rig_config`: COLMAP's
+  rig configuration of a rig scene, to apply to its database.
 """
 
 from colmap_ext.synthetic.database import (
@@ -14,6 +16,7 @@ from colmap_ext.synthetic.database import (
     points_for_keypoints,
     scene_points,
     sequential_pairs,
+    write_rig_config,
     write_synthetic_database,
 )
 from colmap_ext.synthetic.render import (
@@ -23,7 +26,8 @@ from colmap_ext.synthetic.render import (
     write_par_file,
     write_placeholder_images,
 )
-from colmap_ext.synthetic.scene import Quad, Scene, default_camera, driving_scene, ring_scene, trajectory_scene
+from colmap_ext.synthetic.scene import (Quad, Scene, default_camera, driving_scene, rig_scene, ring_scene,
+                                       side_by_side_rig, trajectory_scene)
 
 __all__ = [
     "Quad",
@@ -34,12 +38,15 @@ __all__ = [
     "ground_truth_reconstruction",
     "points_for_keypoints",
     "render_images",
+    "rig_scene",
     "ring_scene",
     "scene_points",
     "sequential_pairs",
+    "side_by_side_rig",
     "trajectory_scene",
     "write_ground_truth",
     "write_par_file",
     "write_placeholder_images",
+    "write_rig_config",
     "write_synthetic_database",
 ]

@@ -15,6 +15,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from colmap_ext.model_io import write_json
+from colmap_ext.rigs import RigCamera, rig_config
 from colmap_ext.synthetic.scene import GridIndex, Scene, cast_rays
 
 DESCRIPTOR_NOISE = 0.25  # L2 norm of the per-observation perturbation of a unit descriptor
@@ -74,15 +76,30 @@ def points_for_keypoints(
     return scene_points(scene, max(1, round(len(probe) * keypoints_per_image / seen)), seed=seed)
 
 
-def sequential_pairs(num_images: int, overlap: int, closed: bool = False) -> set[tuple[int, int]]:
-    """Pairs (i, j), i < j, of each view with the next `overlap` ones, as sequential matching
-    pairs frames; closed, the last views pair with the first ones too (a loop found again)."""
+def sequential_pairs(num_frames: int, overlap: int, closed: bool = False,
+                     images_per_frame: int = 1) -> set[tuple[int, int]]:
+    """Pairs (i, j), i < j, of each image with the images of the next `overlap` frames and
+    the other images of its own frame, as sequential matching pairs a sequence's frames
+    (image frame * images_per_frame + camera: a rig's, rig_scene's order); closed, the
+    last frames pair with the first ones too (a loop found again)."""
     pairs = set()
-    for i in range(num_images):
-        for j in range(i + 1, i + overlap + 1):
-            if j < num_images or (closed and j - num_images < i):
-                pairs.add(tuple(sorted((i, j % num_images))))
+    cameras = range(images_per_frame)
+    for frame in range(num_frames):
+        for other in range(frame, frame + overlap + 1):
+            if other < num_frames or (closed and other - num_frames < frame):
+                first, second = frame * images_per_frame, other % num_frames * images_per_frame
+                pairs.update(tuple(sorted((first + a, second + b))) for a in cameras for b in cameras
+                             if (other, b) != (frame, a))
     return pairs
+
+
+def write_rig_config(path: str | Path, camera: pycolmap.Camera, cams_from_rig: list[pycolmap.Rigid3d],
+                     image_prefixes: list[str]) -> None:
+    """Write COLMAP's rig configuration JSON of a rig_scene's rig (each camera with `camera`'s
+    intrinsics): what `apply_rig_config` makes the rig and frames of its database from."""
+    cameras = [RigCamera(prefix, camera.model.name, camera.params.tolist(), cam_from_rig)
+               for prefix, cam_from_rig in zip(image_prefixes, cams_from_rig)]
+    write_json(rig_config(cameras, image_prefixes), path)
 
 
 def normalised_bounds(camera: pycolmap.Camera) -> tuple[np.ndarray, np.ndarray]:
@@ -256,16 +273,22 @@ def two_view_geometry(scene: Scene, i: int, j: int, inlier_matches: np.ndarray) 
 
 
 def write_images(db: pycolmap.Database, scene: Scene) -> list[int]:
-    """Write the camera, its trivial rig, and one image with a trivial frame per view; returns image ids."""
-    camera = pycolmap.Camera(scene.camera.todict())
-    camera.has_prior_focal_length = True  # known intrinsics: COLMAP then verifies pairs as CALIBRATED
-    camera.camera_id = db.write_camera(camera)
-    rig = pycolmap.Rig()
-    rig.add_ref_sensor(camera.sensor_id)
-    rig_id = db.write_rig(rig)
+    """Write the cameras (the scene's intrinsics, one per folder of the image names, as
+    COLMAP's per-folder import makes them: a rig's cameras, see rig_scene), each with its
+    trivial rig, and one image with a trivial frame per view; returns the image ids."""
+    sensors: dict[str, tuple[int, int]] = {}  # folder -> camera id, rig id
     image_ids = []
     for name in scene.image_names:
-        image = pycolmap.Image(name=name, camera_id=camera.camera_id)
+        folder = name.rpartition("/")[0]
+        if folder not in sensors:
+            camera = pycolmap.Camera(scene.camera.todict())
+            camera.has_prior_focal_length = True  # known intrinsics: COLMAP then verifies pairs as CALIBRATED
+            camera.camera_id = db.write_camera(camera)
+            rig = pycolmap.Rig()
+            rig.add_ref_sensor(camera.sensor_id)
+            sensors[folder] = camera.camera_id, db.write_rig(rig)
+        camera_id, rig_id = sensors[folder]
+        image = pycolmap.Image(name=name, camera_id=camera_id)
         image.image_id = db.write_image(image)
         frame = pycolmap.Frame()
         frame.rig_id = rig_id

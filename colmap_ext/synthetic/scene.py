@@ -325,6 +325,23 @@ def driving_scene(
     return Scene(camera or default_camera(), [poses[p] for p in places], names, quads)
 
 
+def rig_scene(scene: Scene, cams_from_rig: list[pycolmap.Rigid3d], image_prefixes: list[str]) -> Scene:
+    """The scene seen by a rig whose frames stand at the scene's poses (rig_from_world): per
+    frame, one image per camera of the rig (the scene's intrinsics each), image
+    frame * len(cams_from_rig) + camera, named the camera's prefix + the frame's name."""
+    if len(image_prefixes) != len(cams_from_rig):
+        raise ValueError(f"{len(image_prefixes)} image prefixes for {len(cams_from_rig)} cameras")
+    poses = [cam_from_rig * rig_from_world for rig_from_world in scene.cams_from_world for cam_from_rig in cams_from_rig]
+    names = [prefix + name for name in scene.image_names for prefix in image_prefixes]
+    return Scene(scene.camera, poses, names, scene.quads)
+
+
+def side_by_side_rig(num_cameras: int, baseline: float) -> list[pycolmap.Rigid3d]:
+    """cams_from_rig of a rig of cameras looking the same way, each `baseline` metres to the
+    right of the one before (the first is the rig's frame): 2, a stereo pair."""
+    return [pycolmap.Rigid3d(pycolmap.Rotation3d(), [-index * baseline, 0.0, 0.0]) for index in range(num_cameras)]
+
+
 def stop_places(num_images: int, stop_every: int, stop_frames: int) -> np.ndarray:
     """Per frame, the index of its place along the path: frame k * stop_every (k >= 1) and the
     stop_frames - 1 frames after it share one place."""
