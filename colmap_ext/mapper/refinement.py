@@ -18,9 +18,13 @@ from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import (BundleAdjustmentOptions, FilteringOptions,
                                        GuidedMatchingOptions, MapperOptions,
                                        TriangulationOptions)
-from colmap_ext.mapper.triangulation import merge_tracks, track_links, triangulate_image
+from colmap_ext.mapper.triangulation import (complete_tracks, merge_tracks, track_links,
+                                             triangulate_image)
 from colmap_ext.mapper.two_view import Pair, pair_graph
 from colmap_ext.timing import StageTimer
+
+# Rounds of complete_and_merge_tracks at most (drive800: 3 changed the model, the 4th nothing).
+MAX_TRACK_ROUNDS = 10
 
 
 @dataclass
@@ -172,7 +176,8 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     look like Gaussian noise alone (filtering.errors_look_gaussian) there are none, and
     that cap would only cut the noise's tail: the points are those the noise split or
     kept from observations, the ones verified matches disagree with (points_off_matches),
-    and none where they agree with every track. Returns the number of points."""
+    and none where they agree with every track; the tracks are then completed and merged
+    to the end (complete_and_merge_tracks). Returns the number of points."""
     registered = model.registered
     triangulation = options.triangulation
     errors = reprojection_errors(model, registered)
@@ -193,8 +198,8 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
             model.delete_point(point_id)
         triangulate_images(model, model.registration_order, graphs, options.guided_matching,
                            strict)
-        if gaussian:  # the tracks the noise split again, as during growth
-            timer.counts["points merged"] += merge_tracks(model, graphs.verified, strict)
+        if gaussian:
+            complete_and_merge_tracks(model, graphs.verified, strict, timer)
     with timer("filtering"):
         # The points the final filter would drop anyway (two-view tracks, narrow
         # angles) go first: the adjustment then solves the model's size, not twice it.
@@ -202,6 +207,22 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
     # One round: the observations are fresh, and a second changed nothing measured.
     ModelAdjuster.of(model, options, timer).global_adjustment(final=True, rounds=1)
     return model.reconstruction.num_points3D()
+
+
+def complete_and_merge_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
+                              triangulation: TriangulationOptions, timer: StageTimer) -> None:
+    """complete_tracks and merge_tracks again until neither changes the model (at most
+    MAX_TRACK_ROUNDS): merge_tracks joins a point to one other a call, a merged point
+    can reach more keypoints, and a completed track link more points. On a long
+    sequence the tracks that growth left split or short are many, and every one
+    missing weakens the links between distant frames (BENCHMARKS.md, "Sequences")."""
+    for _ in range(MAX_TRACK_ROUNDS):
+        added = complete_tracks(model, verified, triangulation)
+        merged = merge_tracks(model, verified, triangulation)
+        timer.counts["observations completed"] += added
+        timer.counts["points merged"] += merged
+        if not added and not merged:
+            break
 
 
 def points_off_matches(model: Model, matches: dict[Pair, np.ndarray],
