@@ -14,8 +14,12 @@ where COLMAP's own mappers read it. A pair that fails is written as DEGENERATE w
 inliers, as COLMAP does.
 
 Matchers: exhaustive (every pair), sequential (each image with the next `overlap` in
-name order, plus COLMAP's quadratic overlap) and, for rings such as turntables, loop
-closure: the last images matched with the first ones, through an imported pair list.
+name order and, as COLMAP expands them, the other images of their frames; plus COLMAP's
+quadratic overlap) and, for rings such as turntables, loop closure: the last frames
+matched with the first ones. The quadratic and loop closure pairs join frames in the
+sequence's order (sequence_frames), each pair of frames expanded to all pairs of their
+images, so a rig's cameras, whose prefixed names sort one camera after another, are
+paired as their frames.
 Sequential matching also runs COLMAP's loop detection (every `loop_detection_period`-th
 image with its most similar ones by visual words, where a sequence revisits a place),
 on COLMAP's vocabulary tree file when one is given, otherwise on a vocabulary trained
@@ -27,6 +31,8 @@ here, or Ray tasks), and written here as the blocks complete.
 from __future__ import annotations
 
 import contextlib
+import graphlib
+import heapq
 import os
 import time
 import zlib
@@ -34,7 +40,7 @@ from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pycolmap
@@ -327,7 +333,8 @@ def pairs_to_match(database_path: Path, matcher: str, options: MatchingOptions,
                    progress: bool = True) -> tuple[list[tuple[int, int]], float]:
     """The image-id pairs to match, in COLMAP's orientation: pycolmap's exhaustive or
     sequential pair generator (with loop detection), then the quadratic and loop closure
-    pairs not among them; and the seconds loop detection took."""
+    pairs of frames, each expanded to all pairs of their images, not among them; and the
+    seconds loop detection took."""
     loop_detection_seconds = 0.0
     with pycolmap.Database.open(database_path) as db:
         if matcher == "exhaustive":
@@ -341,12 +348,11 @@ def pairs_to_match(database_path: Path, matcher: str, options: MatchingOptions,
                 pairs = sequential_pairs(db, options, vocabulary, progress)
             loop_detection_seconds = time.perf_counter() - start
         if matcher != "exhaustive":
-            ids = {image.name: image.image_id for image in db.read_all_images()}
-            names = sorted(ids)
-            more = quadratic_pairs(names, options.overlap)
+            frames = sequence_frames(db)
+            more = quadratic_pairs(frames, options.overlap)
             if options.loop_closure:
-                more += loop_closure_pairs(names, options.overlap)
-            pairs += [(ids[a], ids[b]) for a, b in more]
+                more += loop_closure_pairs(frames, options.overlap)
+            pairs += [(id1, id2) for frame1, frame2 in more for id1 in frame1 for id2 in frame2]
     seen: set[int] = set()
     unique = []
     for id1, id2 in pairs:
@@ -454,19 +460,58 @@ def matching_options(max_ratio: float, num_threads: int) -> pycolmap.FeatureMatc
     return options
 
 
-def quadratic_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
-    """COLMAP's quadratic overlap beyond the linear one: each image with the images
-    2^k after it (k < overlap) that lie more than `overlap` ahead."""
-    return [(names[i], names[i + 2**k]) for i in range(len(names)) for k in range(overlap)
-            if overlap < 2**k and i + 2**k < len(names)]
+def sequence_frames(db: pycolmap.Database) -> list[list[int]]:
+    """The database's frames, each the ids of its images in name order, in the sequence's
+    order: every camera's images in name order (a rig's are named alike under each
+    camera's prefix, as COLMAP's rig configuration has them, so that is their frames'
+    order too), and where that leaves a choice, the frame whose first name sorts first.
+    With one image a frame that is the images' name order. An image in no frame is a
+    frame of its own; frames that no order satisfies follow their first names."""
+    images = sorted(db.read_all_images(), key=lambda image: image.name)
+    name_of = {image.image_id: image.name for image in images}
+    frames = [sorted((data.id for data in frame.image_ids), key=name_of.__getitem__)
+              for frame in db.read_all_frames() if frame.image_ids]
+    framed = {image_id for frame in frames for image_id in frame}
+    frames += [[image.image_id] for image in images if image.image_id not in framed]
+    frame_of = {image_id: index for index, frame in enumerate(frames) for image_id in frame}
+    sorter = graphlib.TopologicalSorter({index: () for index in range(len(frames))})
+    last_of_camera: dict[int, int] = {}
+    for image in images:  # each frame after the frame of its camera's previous image
+        index = frame_of[image.image_id]
+        if last_of_camera.get(image.camera_id, index) != index:
+            sorter.add(index, last_of_camera[image.camera_id])
+        last_of_camera[image.camera_id] = index
+    try:
+        sorter.prepare()
+    except graphlib.CycleError:
+        return sorted(frames, key=lambda frame: name_of[frame[0]])
+    order: list[list[int]] = []
+    ready: list[tuple[str, int]] = []
+    while sorter.is_active():
+        for index in sorter.get_ready():
+            heapq.heappush(ready, (name_of[frames[index][0]], index))
+        _, index = heapq.heappop(ready)
+        order.append(frames[index])
+        sorter.done(index)
+    return order
 
 
-def loop_closure_pairs(names: list[str], overlap: int) -> list[tuple[str, str]]:
+Item = TypeVar("Item")
+
+
+def quadratic_pairs(sequence: list[Item], overlap: int) -> list[tuple[Item, Item]]:
+    """COLMAP's quadratic overlap beyond the linear one: each item (image or frame) with
+    the items 2^k after it (k < overlap) that lie more than `overlap` ahead."""
+    return [(sequence[i], sequence[i + 2**k]) for i in range(len(sequence))
+            for k in range(overlap) if overlap < 2**k and i + 2**k < len(sequence)]
+
+
+def loop_closure_pairs(sequence: list[Item], overlap: int) -> list[tuple[Item, Item]]:
     """The pairs sequential matching would add if the sequence were a closed ring: each
-    of the last `overlap` images with the next ones counted from the start, except pairs
-    that are within `overlap` of each other anyway (short sequences)."""
-    n = len(names)
-    return [(names[i], names[i + step - n])
+    of the last `overlap` items (images or frames) with the next ones counted from the
+    start, except pairs that are within `overlap` of each other anyway (short sequences)."""
+    n = len(sequence)
+    return [(sequence[i], sequence[i + step - n])
             for i in range(n) for step in range(1, overlap + 1)
             if i + step >= n and n - step > overlap]
 

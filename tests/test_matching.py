@@ -13,11 +13,13 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_ext import matching
+from colmap_ext import matching, rigs
 from colmap_ext.errors import UserError
 from colmap_ext.executors import LocalExecutor
 from colmap_ext.features import FeatureOptions, extract_features, quiet_colmap_logs
 from colmap_ext.matching import MatchingOptions, loop_closure_pairs, match_features
+from colmap_ext.synthetic import (Scene, driving_scene, points_for_keypoints, rig_scene,
+                                  side_by_side_rig, write_rig_config, write_synthetic_database)
 
 WIDTH, HEIGHT, FOCAL = 480, 360, 500.0
 K = np.array([[FOCAL, 0, WIDTH / 2], [0, FOCAL, HEIGHT / 2], [0, 0, 1]])
@@ -302,6 +304,100 @@ def test_sequential_matching_pairs_each_image_with_the_next_overlap(long_sequenc
     linear = {(names[i], names[i + step]) for i in range(len(names)) for step in (1, 2, 3)
               if i + step < len(names)}
     assert linear <= tried
+
+
+SEQUENCE_FRAMES = 40
+# Quadratic overlap beyond the linear one: frames 8 and 16 apart (2^k, k < 5).
+SEQUENCE_OVERLAP = 5
+STEREO_PREFIXES = ["left/", "right/"]
+
+
+def drive_database(folder: Path, layout: str, missing: str | None = None
+                   ) -> tuple[Path, list[list[str]]]:
+    """A drive's database (synthetic features, nothing matched) seen as `layout`: a "stereo
+    rig" (left/ and right/ cameras, its rig configuration applied), "one camera", or "two
+    cameras, no rig" (the stereo images, a camera per folder, a frame per image); without
+    image `missing`. Returns it and its sequence: the frames' image names, in order."""
+    drive = driving_scene(SEQUENCE_FRAMES, seed=1, stop_every=0)
+    prefixes = [""] if layout == "one camera" else STEREO_PREFIXES
+    cams_from_rig = side_by_side_rig(len(prefixes), 0.54)
+    scene = rig_scene(drive, cams_from_rig, prefixes)
+    kept = [index for index, name in enumerate(scene.image_names) if name != missing]
+    scene = Scene(scene.camera, [scene.cams_from_world[i] for i in kept],
+                  [scene.image_names[i] for i in kept], scene.quads)
+    database_path = folder / "database.db"
+    write_synthetic_database(database_path, scene, points_for_keypoints(scene, 100, seed=1),
+                             pairs=set())
+    if layout != "stereo rig":
+        return database_path, [[name] for name in sorted(scene.image_names)]
+    write_rig_config(folder / "rig.json", scene.camera, cams_from_rig, prefixes)
+    rigs.apply_rig_config(database_path, rigs.read_rig_config(folder / "rig.json"))
+    return database_path, [[prefix + name for prefix in prefixes if prefix + name != missing]
+                           for name in drive.image_names]
+
+
+@pytest.mark.parametrize("layout", ["stereo rig", "one camera", "two cameras, no rig"])
+def test_sequential_matching_pairs_whole_frames_in_the_sequences_order(
+        tmp_path: Path, layout: str) -> None:
+    """A stereo rig's frames, whose left/ names all sort before the right/ ones, are matched
+    as frames: each frame with the next SEQUENCE_OVERLAP, the ones 8 and 16 ahead
+    (quadratic) and the first ones round the ring (loop closure), every image of one with
+    every image of the other, and with nothing else. Without a rig (one camera, or a
+    camera per folder with a frame per image) the sequence is the images' name order, as
+    before."""
+    database_path, sequence = drive_database(tmp_path, layout)
+    match_features(database_path, MatchingOptions(matcher="sequential", overlap=SEQUENCE_OVERLAP,
+                                                  loop_detection=False), progress=False)
+    n = len(sequence)
+    steps = set(range(SEQUENCE_OVERLAP + 1)) | {8, 16} | {n - step for step in range(
+        1, SEQUENCE_OVERLAP + 1)}
+    expected = {tuple(sorted((a, b))) for i, j in itertools.combinations_with_replacement(
+        range(n), 2) if j - i in steps for a in sequence[i] for b in sequence[j] if a != b}
+    assert matched_pairs(database_path, sorted(sum(sequence, []))) == expected
+
+
+def test_a_frame_without_its_first_cameras_image_keeps_its_place_in_the_sequence(
+        tmp_path: Path) -> None:
+    """Frame 10 has no left/ image: it stays between frames 9 and 11 (its right/ image
+    sorts after every left/ one), so its quadratic and loop closure partners are frames'
+    8 and 16 away, not the sequence's last ones."""
+    database_path, sequence = drive_database(tmp_path, "stereo rig", "left/drive00010.png")
+    with pycolmap.Database.open(database_path) as db:
+        name_of = {image.image_id: image.name for image in db.read_all_images()}
+        frames = [[name_of[image_id] for image_id in frame]
+                  for frame in matching.sequence_frames(db)]
+    assert frames[10] == ["right/drive00010.png"]
+    assert frames == sequence
+
+
+def test_frames_that_contradict_their_cameras_name_orders_follow_their_first_names(
+        tmp_path: Path) -> None:
+    """Frames {a/1, b/2} and {a/2, b/1}: camera a puts the first before the second, camera
+    b the second before the first; no order keeps both, so the frames go by first name."""
+    with pycolmap.Database.open(tmp_path / "database.db") as db:
+        rig = pycolmap.Rig()
+        cameras = {}
+        for folder in ("a", "b"):
+            camera = pycolmap.Camera(model="PINHOLE", width=WIDTH, height=HEIGHT,
+                                     params=[FOCAL, FOCAL, WIDTH / 2, HEIGHT / 2])
+            camera.camera_id = cameras[folder] = db.write_camera(camera)
+            if folder == "a":
+                rig.add_ref_sensor(camera.sensor_id)
+            else:
+                rig.add_sensor(camera.sensor_id, pycolmap.Rigid3d())
+        rig_id = db.write_rig(rig)
+        for names in (["a/1.png", "b/2.png"], ["a/2.png", "b/1.png"]):
+            frame = pycolmap.Frame()
+            frame.rig_id = rig_id
+            for name in names:
+                image = pycolmap.Image(name=name, camera_id=cameras[name[0]])
+                image.image_id = db.write_image(image)
+                frame.add_data_id(image.data_id)
+            db.write_frame(frame)
+        name_of = {image.image_id: image.name for image in db.read_all_images()}
+        frames = [[name_of[image_id] for image_id in frame]
+                  for frame in matching.sequence_frames(db)]
+    assert frames == [["a/1.png", "b/2.png"], ["a/2.png", "b/1.png"]]
 
 
 def test_bad_options_and_databases(scene_database, tmp_path: Path) -> None:
