@@ -52,8 +52,8 @@ MAX_ALIGNED_CENTRE_ERROR = 0.005
 # each frame matched with the next 10), 200 frames in leaves of at most 40 grown by 10: a
 # chain of 8 clusters. Before 705c022 and f609620 it fell into 2 models (156 + 50 frames):
 # junctions of 0-4 shared frames, and similarities started from the centres alone, which
-# lie on a line there. Measured: R_err max 0.131 deg, ATE median 0.034 m (the flat mapper
-# on the same database: 0.112 deg, 0.017 m); bounds about 2-3x ours.
+# lie on a line there. Measured: R_err max 0.117 deg, ATE median 0.034 m (the flat mapper
+# on the same database: 0.068 deg, 0.017 m); bounds about 2.5x ours.
 DRIVE_FRAMES = 200
 DRIVE_LEAF_MAX_NUM_IMAGES = 40
 DRIVE_IMAGE_OVERLAP = 10
