@@ -71,8 +71,11 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
         joined = [join(db, models, group) for group in groups]
     # Each joined model ends as the flat mapper ends a model, which the clusters left out:
     # the flat mapper continues it over its clusters' images (registering those a cluster
-    # missed), adjusts it, triangulates it again from the final poses and filters it.
-    finish_options = options_from_flags({"Mapper.multiple_models": False}, base=mapper_options)
+    # missed), adjusts it, triangulates it again from the final poses and filters it. Its
+    # poses are the mapper's own, not a given model's to hold (fix_existing_frames).
+    finish_options = options_from_flags({"Mapper.multiple_models": False,
+                                         "Mapper.fix_existing_frames": False},
+                                        base=mapper_options)
     reconstructions = []
     for group, reconstruction in zip(groups, joined):
         names = sorted({db.images[i].name for m in group for i in clusters[cluster_of_model[m]]})
