@@ -76,11 +76,18 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     finish_options = options_from_flags({"Mapper.multiple_models": False,
                                          "Mapper.fix_existing_frames": False},
                                         base=mapper_options)
-    reconstructions = []
-    for group, reconstruction in zip(groups, joined):
+    reconstructions: list[pycolmap.Reconstruction] = []
+    held: set[int] = set()
+    for group, reconstruction in zip(groups, joined):  # the largest first
+        if set(reconstruction.reg_image_ids()) <= held:
+            # Nothing a larger model does not hold: a cluster's second model, whose
+            # images the larger model's end registered.
+            continue
         names = sorted({db.images[i].name for m in group for i in clusters[cluster_of_model[m]]})
-        reconstructions += reconstruct(db, finish_options, names, timer, progress=False,
-                                       existing=reconstruction)
+        finished = reconstruct(db, finish_options, names, timer, progress=False,
+                               existing=reconstruction)
+        reconstructions += finished
+        held.update(*(model.reg_image_ids() for model in finished))
     return sorted(reconstructions, key=lambda r: (-r.num_reg_images(), -r.num_points3D())), \
         reports
 
