@@ -64,7 +64,7 @@ def map_cluster(index: int, db: DatabaseContents, options: MapperOptions,
     """The task: the calibrated mapper on one cluster, on `threads` threads (its options'
     for Ceres, and as many for BLAS, so that workers sharing a machine do not
     oversubscribe it); (index, models, seconds). Without the models' closing global
-    adjustments: the joined model's adjustment (bundle_adjust) replaces them."""
+    adjustments and retriangulation: the joined model's end (pipeline.py) replaces them."""
     from threadpoolctl import threadpool_limits
 
     start = time.perf_counter()

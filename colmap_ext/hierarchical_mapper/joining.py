@@ -20,18 +20,22 @@ def similarity(target: ClusterModel, source: ClusterModel,
                options: HierarchicalOptions) -> tuple[pycolmap.Sim3d, int] | None:
     """target_from_source and the number of shared images that agree on it, or None.
 
-    The centres of the shared images give a robust similarity (pycolmap's LO-RANSAC);
-    an image agrees when, moved by it, its rotation and its direction from the centre
-    of the overlap are within merge_max_angle_deg of the target's, and its centre
-    within max_centre_error of the overlap's extent. The agreeing images then give the
-    similarity again: its rotation the mean of what each image's two rotations imply,
-    its scale and translation the least-squares fit of the centres under that rotation;
-    the images that agree with that one are the answer's.
+    Each shared image's two rotations imply the similarity's rotation; the start is the
+    mean of those that agree, within merge_max_angle_deg, with the image most others
+    agree with. Under it, scale and translation come from the centres, robustly: the
+    median ratio of the distances between two images in either model, and the median
+    offset. An image agrees when, moved by the similarity, its rotation and its
+    direction from the centre of the overlap are within merge_max_angle_deg of the
+    target's, and its centre within max_centre_error of the overlap's extent. The
+    agreeing images then give the similarity again (the mean of their rotations, the
+    least-squares fit of their centres under it); the images that agree with that one
+    are the answer's.
 
-    The centres alone fix the rotation poorly where they are nearly collinear, as on a
-    walk or along a sequence (about the line they lie on); each image's two rotations
-    fix it to their noise. A wrong rotation at a junction is a bend that the final
-    adjustment straightens only slowly."""
+    The rotation comes from the cameras because the centres fix it poorly where they are
+    nearly collinear, as on a walk or along a sequence (about the line they lie on): a
+    start from the centres alone can disagree with every image's rotation there, and a
+    wrong rotation at a junction is a bend that the final adjustment straightens only
+    slowly."""
     shared, in_target, in_source = np.intersect1d(target.image_ids, source.image_ids,
                                                   return_indices=True)
     if len(shared) < options.min_shared_images:
@@ -43,10 +47,14 @@ def similarity(target: ClusterModel, source: ClusterModel,
     extent = np.sqrt(np.mean(np.sum((centres_target - centres_target.mean(0)) ** 2, axis=1)))
     if extent <= 0:
         return None
-    ransac = pycolmap.RANSACOptions(max_error=options.max_centre_error * extent)
-    ransac.random_seed = 0
-    found = pycolmap.estimate_sim3d_robust(centres_source, centres_target, ransac)
-    if found is None:
+    # target_from_source's rotation as each shared image implies it: R_target^T @ R_source.
+    implied = np.transpose(target_poses[:, :, :3], (0, 2, 1)) @ source_poses[:, :, :3]
+    between = np.einsum("iba,jbc->ijac", implied, implied).reshape(-1, 3, 3)
+    close = rotation_angles_deg(between).reshape(len(shared), -1) <= options.merge_max_angle_deg
+    start = close[np.argmax(close.sum(axis=1))]
+    target_from_source = robust_similarity(centres_source[start], centres_target[start],
+                                           mean_rotation(implied[start]))
+    if target_from_source is None:
         return None
 
     def agreeing(target_from_source: pycolmap.Sim3d) -> np.ndarray:
@@ -62,16 +70,29 @@ def similarity(target: ClusterModel, source: ClusterModel,
             (direction_error <= options.merge_max_angle_deg) & \
             (centre_error <= options.max_centre_error)
 
-    target_from_source = found["tgt_from_src"]
     for _ in range(2):
         agree = agreeing(target_from_source)
         if agree.sum() < options.min_shared_images:
             return None
-        rotation = mean_rotation(np.transpose(target_poses[agree, :, :3], (0, 2, 1))
-                                 @ source_poses[agree, :, :3])
         target_from_source = fit_similarity(centres_source[agree], centres_target[agree],
-                                            rotation)
+                                            mean_rotation(implied[agree]))
     return target_from_source, int(agree.sum())
+
+
+def robust_similarity(source: np.ndarray, target: np.ndarray,
+                      rotation: np.ndarray) -> pycolmap.Sim3d | None:
+    """The similarity with `rotation` taking `source` points (n,3) onto `target`, its scale
+    the median ratio of the distances between two points, its translation the median
+    offset: neither moved by a minority of wrong points. None where no two source
+    points are apart."""
+    distances_source = np.linalg.norm(source[:, None] - source[None], axis=2)
+    distances_target = np.linalg.norm(target[:, None] - target[None], axis=2)
+    apart = np.triu(distances_source > 0, k=1)
+    if not apart.any():
+        return None
+    scale = float(np.median(distances_target[apart] / distances_source[apart]))
+    translation = np.median(target - scale * source @ rotation.T, axis=0)
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation)
 
 
 def spanning_trees(models: list[ClusterModel], options: HierarchicalOptions

@@ -36,8 +36,6 @@ class HierarchicalOptions:
     min_shared_images: int = 3
     merge_max_angle_deg: float = MergingOptions.max_angle_deg
     max_centre_error: float = 0.05
-    # Observations reprojecting farther than this after the adjustment are dropped.
-    max_reproj_error_px: float = 4.0
 
     def __post_init__(self) -> None:
         if self.leaf_max_num_images < 3:

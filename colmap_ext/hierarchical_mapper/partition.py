@@ -79,16 +79,27 @@ def leaf_clusters(graph: dict[int, dict[int, int]], nodes: list[int],
     return sorted(leaves, key=lambda c: c[0])
 
 
-def grow(graph: dict[int, dict[int, int]], cluster: list[int], overlap: int) -> list[int]:
-    """The cluster and the `overlap` outside images with most inliers to it."""
-    members = set(cluster)
+def grow(graph: dict[int, dict[int, int]], leaf: list[int], leaf_of: dict[int, int],
+         overlap: int) -> list[int]:
+    """The leaf and `overlap` outside images, shared out among the leaves it links to
+    (`leaf_of`: image id -> its leaf): each gives in turn its next image with most
+    inliers to this leaf, the most linked leaf first. Every junction gets its share:
+    the `overlap` images most linked to the leaf, whatever their leaf, can leave a
+    junction of a sequence with few or none where the other side links more (a turn on
+    one side, a stop on the other), and the chain of models breaks there."""
+    members = set(leaf)
     links: dict[int, int] = {}
-    for node in cluster:
+    for node in members:
         for other, weight in graph[node].items():
             if other not in members:
                 links[other] = links.get(other, 0) + weight
-    extra = sorted(links, key=lambda o: (-links[o], o))[:overlap]
-    return sorted(members | set(extra))
+    by_leaf: dict[int, list[int]] = {}
+    for other in sorted(links, key=lambda o: (-links[o], o)):
+        by_leaf.setdefault(leaf_of[other], []).append(other)
+    strength = {k: sum(links[o] for o in images) for k, images in by_leaf.items()}
+    turns = sorted(((rank, -strength[k], k, image) for k, images in by_leaf.items()
+                    for rank, image in enumerate(images)))
+    return sorted(members | {image for *_, image in turns[:overlap]})
 
 
 def partition(db: DatabaseContents, options: HierarchicalOptions) -> list[list[int]]:
@@ -97,6 +108,7 @@ def partition(db: DatabaseContents, options: HierarchicalOptions) -> list[list[i
     connected = [c for c in components(graph, list(graph)) if len(c) >= 2]
     clusters = []
     for component in connected:
-        for leaf in leaf_clusters(graph, component, options.leaf_max_num_images):
-            clusters.append(grow(graph, leaf, options.image_overlap))
+        leaves = leaf_clusters(graph, component, options.leaf_max_num_images)
+        leaf_of = {image: index for index, leaf in enumerate(leaves) for image in leaf}
+        clusters += [grow(graph, leaf, leaf_of, options.image_overlap) for leaf in leaves]
     return clusters

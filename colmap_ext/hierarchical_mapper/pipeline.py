@@ -1,5 +1,5 @@
 """The hierarchical mapper from a database in memory to its models: partition, map the
-clusters, join and adjust."""
+clusters, join, and end each joined model as the flat mapper ends one."""
 
 from __future__ import annotations
 
@@ -15,11 +15,10 @@ from colmap_ext.hierarchical_mapper.clusters import ClusterModel, database_subse
 from colmap_ext.hierarchical_mapper.joining import join, spanning_trees
 from colmap_ext.hierarchical_mapper.options import HierarchicalOptions
 from colmap_ext.hierarchical_mapper.partition import partition
-from colmap_ext.mapper.bundle_adjustment import adjust_reconstruction
 from colmap_ext.mapper.cli import options_from_flags
 from colmap_ext.mapper.initial_pair import check_requested_pair
 from colmap_ext.mapper.options import MapperOptions
-from colmap_ext.mapper.pipeline import options_for_model
+from colmap_ext.mapper.pipeline import options_for_model, reconstruct
 from colmap_ext.timing import StageTimer
 
 
@@ -38,7 +37,7 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
                          timer: StageTimer | None = None, progress: bool = True
                          ) -> tuple[list[pycolmap.Reconstruction], list[ClusterReport]]:
     """Partition, map every cluster (Ray tasks on `cluster`, a distributed.Cluster, else
-    a pool of local processes), join and adjust. Returns the models, largest first (nothing
+    a pool of local processes), join and finish. Returns the models, largest first (nothing
     written), and a report per cluster. The command maps with MAPPER_DEFAULTS under its
     flags."""
     timer = timer or StageTimer()
@@ -56,6 +55,7 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
     arguments = [(index, database_subset(db, ids), options_for_model(task_options, ids),
                   threads) for index, ids in enumerate(clusters)]
     models: list[ClusterModel] = []
+    cluster_of_model: list[int] = []
     reports: list[ClusterReport] = []
     with timer("cluster mapping"):
         executor = cluster or LocalExecutor(workers, processes=True)
@@ -63,24 +63,31 @@ def hierarchical_mapping(db: DatabaseContents, mapper_options: MapperOptions,
                                desc=f"map {len(clusters)} clusters", progress=progress)
         for index, cluster_models, seconds in sorted(results, key=lambda r: r[0]):
             models += cluster_models
+            cluster_of_model += [index] * len(cluster_models)
             reports.append(ClusterReport(
                 len(clusters[index]), sum(len(m.image_ids) for m in cluster_models), seconds))
     with timer("merging"):
         groups = spanning_trees(models, options)
-        reconstructions = [join(db, models, group) for group in groups]
-    with timer("bundle adjustment"):
-        for reconstruction in reconstructions:
-            adjust_reconstruction(reconstruction, mapper_options.bundle_adjustment, cores)
-            drop_far_observations(reconstruction, options.max_reproj_error_px)
-    reconstructions = [r for r in reconstructions if r.num_reg_images() >= 2]
+        joined = [join(db, models, group) for group in groups]
+    # Each joined model ends as the flat mapper ends a model, which the clusters left out:
+    # the flat mapper continues it over its clusters' images (registering those a cluster
+    # missed), adjusts it, triangulates it again from the final poses and filters it. Its
+    # poses are the mapper's own, not a given model's to hold (fix_existing_frames).
+    finish_options = options_from_flags({"Mapper.multiple_models": False,
+                                         "Mapper.fix_existing_frames": False},
+                                        base=mapper_options)
+    reconstructions: list[pycolmap.Reconstruction] = []
+    held: set[int] = set()
+    for group, reconstruction in zip(groups, joined):  # the largest first
+        if set(reconstruction.reg_image_ids()) <= held:
+            # Nothing a larger model does not hold: a cluster's second model, whose
+            # images the larger model's end registered.
+            continue
+        names = sorted({db.images[i].name for m in group for i in clusters[cluster_of_model[m]]})
+        finished = reconstruct(db, finish_options, names, timer, progress=False,
+                               existing=reconstruction)
+        reconstructions += finished
+        held.update(*(model.reg_image_ids() for model in finished))
     return sorted(reconstructions, key=lambda r: (-r.num_reg_images(), -r.num_points3D())), \
         reports
 
-
-def drop_far_observations(reconstruction: pycolmap.Reconstruction, max_error_px: float) -> None:
-    """Drop the observations reprojecting farther than `max_error_px`, and with them the
-    points left with one (COLMAP's ObservationManager)."""
-    manager = pycolmap.ObservationManager(reconstruction)
-    manager.filter_points3D_with_large_reprojection_error(
-        max_error_px, set(reconstruction.point3D_ids()))
-    reconstruction.update_point_3d_errors()
