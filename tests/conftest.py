@@ -12,6 +12,28 @@ import pytest
 
 
 @pytest.fixture(scope="session")
+def write_drive():
+    """A function that writes a synthetic drive of `num_frames` into `folder` and returns
+    its scene: `driving_scene` with a corner every 40 m or so and 8 frames standing still
+    every 50; database.db with 500 keypoints an image, 0.5 px noise, 20 % wrong matches,
+    each frame matched with the next 10 (COLMAP's sequential matching), verified
+    geometries; placeholder images/ (our mapper reads point colours)."""
+    from colmap_ext.synthetic import (driving_scene, points_for_keypoints, sequential_pairs,
+                                      write_placeholder_images, write_synthetic_database)
+
+    def write(folder: Path, num_frames: int):
+        scene = driving_scene(num_images=num_frames, seed=0, block_length=40.0, stop_every=50,
+                              stop_frames=8)
+        write_synthetic_database(folder / "database.db", scene,
+                                 points_for_keypoints(scene, 500, seed=0, max_distance=40.0),
+                                 noise_px=0.5, outlier_ratio=0.2, max_distance=40.0, seed=0,
+                                 two_view_geometries=True, pairs=sequential_pairs(num_frames, 10))
+        write_placeholder_images(folder / "images", scene.image_names)
+        return scene
+    return write
+
+
+@pytest.fixture(scope="session")
 def real_data() -> Path:
     """The folder of real image sets with ground truth (COLMAP_EXT_DATA, as .ci/run sets
     it); tests that need it are skipped, saying so, when it is not set."""

@@ -29,8 +29,7 @@ from colmap_ext.hierarchical_mapper import (MAPPER_DEFAULTS, ClusterModel, Hiera
                                             hierarchical_mapping, partition, similarity)
 from colmap_ext.mapper.cli import options_from_flags
 from colmap_ext.rig_consistency import model_rig_frames, rig_consistency
-from colmap_ext.synthetic import (driving_scene, points_for_keypoints, sequential_pairs,
-                                  write_placeholder_images)
+from colmap_ext.synthetic import write_placeholder_images
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
 from colmap_ext.synthetic.pycolmap_generator import write_pycolmap_dataset
 from colmap_ext.synthetic.scene import Quad, Scene, box_quads, look_at
@@ -256,16 +255,10 @@ def aligned_centre_errors(model: pycolmap.Reconstruction, scene: Scene) -> np.nd
     return np.linalg.norm(align_similarity(estimated, true) - true, axis=1)
 
 
-def test_drive_maps_into_one_model_near_the_truth(tmp_path):
+def test_drive_maps_into_one_model_near_the_truth(write_drive, tmp_path):
     """A driving sequence cut into a chain of 8 clusters: each junction joins, and the
     joined model holds every frame, near the truth."""
-    scene = driving_scene(num_images=DRIVE_FRAMES, seed=0, block_length=40.0, stop_every=50,
-                          stop_frames=8)
-    write_synthetic_database(tmp_path / "database.db", scene,
-                             points_for_keypoints(scene, 500, seed=0, max_distance=40.0),
-                             noise_px=0.5, outlier_ratio=0.2, max_distance=40.0, seed=0,
-                             two_view_geometries=True,
-                             pairs=sequential_pairs(DRIVE_FRAMES, 10))
+    scene = write_drive(tmp_path, DRIVE_FRAMES)
     db = read_database(tmp_path / "database.db")
     options = HierarchicalOptions(DRIVE_LEAF_MAX_NUM_IMAGES, DRIVE_IMAGE_OVERLAP, num_workers=2)
     assert len(partition(db, options)) >= 3

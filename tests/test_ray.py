@@ -33,9 +33,6 @@ from colmap_ext.evaluate import evaluate  # noqa: E402
 from colmap_ext.features import FeatureOptions, extract_features  # noqa: E402
 from colmap_ext.ground_truth import GroundTruth  # noqa: E402
 from colmap_ext.reconstruct import main as reconstruct  # noqa: E402
-from colmap_ext.synthetic import (driving_scene, points_for_keypoints,  # noqa: E402
-                                  sequential_pairs, write_placeholder_images,
-                                  write_synthetic_database)
 from colmap_ext.synthetic.render import render_images  # noqa: E402
 from colmap_ext.synthetic.scene import ring_scene  # noqa: E402
 
@@ -276,20 +273,15 @@ def test_hierarchical_mapper_maps_clusters_as_ray_tasks(ray_cluster, single_mach
     assert model.compute_mean_reprojection_error() < 1.0
 
 
-def test_hierarchical_mapper_joins_a_sequence_mapped_as_ray_tasks(ray_cluster, tmp_path):
+def test_hierarchical_mapper_joins_a_sequence_mapped_as_ray_tasks(ray_cluster, write_drive,
+                                                                   tmp_path):
     """`hierarchical_mapper --ray_address` on a synthetic drive of 100 frames (each
     matched with the next 10) in a chain of 4 clusters, one task each: one model of
     every frame, its rotations within 0.3 deg of the truth (test_hierarchical_mapper's
     drive bound)."""
     address, _ = ray_cluster
     frames = 100
-    scene = driving_scene(num_images=frames, seed=0, block_length=40.0, stop_every=50,
-                          stop_frames=8)
-    write_synthetic_database(tmp_path / "database.db", scene,
-                             points_for_keypoints(scene, 500, seed=0, max_distance=40.0),
-                             noise_px=0.5, outlier_ratio=0.2, max_distance=40.0, seed=0,
-                             two_view_geometries=True, pairs=sequential_pairs(frames, 10))
-    write_placeholder_images(tmp_path / "images", scene.image_names)
+    scene = write_drive(tmp_path, frames)
     out = tmp_path / "out"
     result = subprocess.run(
         [*CLI, "hierarchical_mapper", "--database_path", str(tmp_path / "database.db"),

@@ -77,16 +77,10 @@ def errors_from_truth(model: pycolmap.Reconstruction, truth) -> tuple[float, flo
     return report["R_err_max_deg"], float(np.median(ate))
 
 
-def test_mapper_maps_a_synthetic_drive_in_one_model(tmp_path):
+def test_mapper_maps_a_synthetic_drive_in_one_model(write_drive, tmp_path):
     """Forward motion, corners and stops (frames without baseline): every frame in one
     model, with the default flags."""
-    scene = driving_scene(num_images=DRIVE_FRAMES, seed=0, block_length=40.0, stop_every=50,
-                          stop_frames=8)
-    write_synthetic_database(tmp_path / "database.db", scene,
-                             points_for_keypoints(scene, 500, seed=0, max_distance=40.0),
-                             noise_px=0.5, outlier_ratio=0.2, max_distance=40.0, seed=0,
-                             two_view_geometries=True, pairs=sequential_pairs(DRIVE_FRAMES, 10))
-    write_placeholder_images(tmp_path / "images", scene.image_names)
+    scene = write_drive(tmp_path, DRIVE_FRAMES)
     write_ground_truth(scene, tmp_path / "truth")
     model = run_mapper(tmp_path / "database.db", tmp_path / "images", tmp_path / "out")
     assert model.num_reg_images() == DRIVE_FRAMES
