@@ -321,6 +321,7 @@ def bundle_adjust(rigs_from_world: list[pycolmap.Rigid3d], free_parameters,
                   pixels_from_tangent, *, loss: str = "trivial", loss_scale: float = 1.0,
                   max_iterations: int = 50, gradient_tolerance: float = 1.0,
                   function_tolerance: float = 0.0, max_step_scale: float = 16.0,
+                  initial_trust_region_radius: float = 1e4,
                   num_threads: int = 1) -> BundleAdjustmentResult:
     """Bundle adjustment of frame poses and points with calibrated cameras (C++).
 
@@ -334,14 +335,16 @@ def bundle_adjust(rigs_from_world: list[pycolmap.Rigid3d], free_parameters,
     camera model. Levenberg-Marquardt on the Schur complement of the points, with Ceres's
     losses (scale in pixels), step control and stopping rules; each accepted step is tried
     at 2, 4, ... up to `max_step_scale` times its length while the cost falls (under a
-    robust loss a reweighted step falls short). `num_threads` share the residuals and the
+    robust loss a reweighted step falls short); the first step damped by the inverse of
+    `initial_trust_region_radius` (Ceres's). `num_threads` share the residuals and the
     Schur complement. Raises EstimationError if no finite cost comes out.
     """
     check_choice("loss", loss, BUNDLE_LOSSES)
     if not max_step_scale >= 1 or not max_iterations >= 0 or not loss_scale > 0 \
-            or not num_threads >= 1:
+            or not num_threads >= 1 or not initial_trust_region_radius > 0:
         raise ValueError("bundle_adjust needs max_step_scale >= 1, max_iterations >= 0, "
-                         "loss_scale > 0 and num_threads >= 1")
+                         "loss_scale > 0, initial_trust_region_radius > 0 and "
+                         "num_threads >= 1")
     f = as_rays(rays, "rays")
     observed = np.ascontiguousarray(observation_point, dtype=np.int32).reshape(-1)
     images = np.ascontiguousarray(observation_image, dtype=np.int32).reshape(-1)
@@ -354,7 +357,8 @@ def bundle_adjust(rigs_from_world: list[pycolmap.Rigid3d], free_parameters,
         np.ascontiguousarray(image_frame, dtype=np.int32).reshape(-1), points,
         np.ascontiguousarray(point_variable, dtype=bool).reshape(-1), images, observed, f,
         jacobians, loss, float(loss_scale), int(max_iterations), float(gradient_tolerance),
-        float(function_tolerance), float(max_step_scale), int(num_threads))
+        float(function_tolerance), float(max_step_scale), float(initial_trust_region_radius),
+        int(num_threads))
     if not info["usable"]:
         raise EstimationError("bundle adjustment gave no finite cost")
     poses = frames.reshape(-1, 3, 4)

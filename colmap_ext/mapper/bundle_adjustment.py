@@ -22,6 +22,8 @@ from colmap_ext.cameras import pixels_from_tangent
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import BundleAdjustmentOptions
 
+UNLIMITED_IMAGES = 2**31 - 1  # images of one adjustment
+
 
 def adjustment_options(ba: BundleAdjustmentOptions, local: bool, num_threads: int,
                        refine_intrinsics: bool = False, loss: str | None = None,
@@ -44,12 +46,19 @@ def adjustment_options(ba: BundleAdjustmentOptions, local: bool, num_threads: in
         ba.local_max_iterations if local else ba.global_max_iterations
     ba_options.ceres.solver_options.gradient_tolerance = \
         ba.local_gradient_tolerance if local else ba.global_gradient_tolerance
+    ba_options.ceres.solver_options.initial_trust_region_radius = \
+        ba.trust_region_radius(loss or ba.loss, local)
     ba_options.ceres.solver_options.function_tolerance = \
         ba.least_squares_function_tolerance if (loss or ba.loss) == "trivial" \
         else ba.function_tolerance
     ba_options.ceres.solver_options.num_threads = num_threads
     ba_options.ceres.min_num_residuals_for_cpu_multi_threading = \
         ba.min_num_residuals_for_multi_threading
+    # A direct sparse Schur solver at every size, as our own adjuster has: beyond its
+    # default 1000 images pycolmap's turns to ITERATIVE_SCHUR, whose conjugate gradients
+    # crawl along a long sequence's drift, where the Schur complement is banded and cheap
+    # to factorise (BENCHMARKS.md, "Sequences").
+    ba_options.ceres.max_num_images_direct_sparse_cpu_solver = UNLIMITED_IMAGES
     return ba_options
 
 
@@ -181,6 +190,7 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
             max_iterations=max_iterations, gradient_tolerance=gradient_tolerance,
             function_tolerance=ba.least_squares_function_tolerance if loss == "trivial"
             else ba.function_tolerance, max_step_scale=ba.max_step_scale,
+            initial_trust_region_radius=ba.trust_region_radius(loss, local),
             num_threads=num_threads if 2 * len(flat) >= ba.min_num_residuals_for_multi_threading
             else 1)
     except solvers.EstimationError:

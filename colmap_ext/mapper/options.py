@@ -246,6 +246,15 @@ class BundleAdjustmentOptions:
     function_tolerance: float = 1e-5
     # ... and in least squares: run to the gradient tolerance, as COLMAP's adjustments are.
     least_squares_function_tolerance: float = 0.0
+    # The first step is damped by the inverse of this (Ceres's initial_trust_region_radius
+    # and its default) ...
+    initial_trust_region_radius: float = 1e4
+    # ... and in a global adjustment in least squares, nearly not: a Gauss-Newton step on
+    # a cost nearly quadratic about the model's optimum, where damped steps take many
+    # iterations to unwind a long sequence's drift, which the observations fix weakly
+    # (BENCHMARKS.md, "Why the defaults"). The robust loss keeps the damping: there the
+    # real sets' models moved with it.
+    least_squares_global_initial_trust_region_radius: float = 1e8
     # Smaller problems (residuals) are solved on one thread, larger on MapperOptions.threads().
     min_num_residuals_for_multi_threading: int = 50000
     # Refine the intrinsics in global adjustments (the method holds them constant).
@@ -259,6 +268,11 @@ class BundleAdjustmentOptions:
     refine_sensor_from_rig: bool = False
     constant_rig_ids: tuple[int, ...] = ()
 
+    def trust_region_radius(self, loss: str, local: bool) -> float:
+        """The initial trust region radius of an adjustment under `loss`."""
+        return self.least_squares_global_initial_trust_region_radius \
+            if loss == "trivial" and not local else self.initial_trust_region_radius
+
     @property
     def refines_intrinsics(self) -> bool:
         return self.refine_focal_length or self.refine_principal_point or \
@@ -270,6 +284,9 @@ class BundleAdjustmentOptions:
         _require(self.local_max_track_length >= 2, self, "local_max_track_length", ">= 2")
         _require(self.global_images_ratio > 1, self, "global_images_ratio", "> 1")
         _require(self.global_max_iterations >= 1, self, "global_max_iterations", ">= 1")
+        for name in ("initial_trust_region_radius",
+                     "least_squares_global_initial_trust_region_radius"):
+            _require(getattr(self, name) > 0, self, name, "> 0")
         for name in ("local_gradient_tolerance", "global_gradient_tolerance"):
             _require(getattr(self, name) >= 0, self, name, ">= 0")
         _require(self.loss in BA_LOSSES, self, "loss", f"one of {', '.join(BA_LOSSES)}")

@@ -25,7 +25,6 @@ constexpr int kMaxDenseFrames = 200;
 constexpr int kMaxFilledDenseFrames = 500;
 constexpr double kMinDenseFill = 0.25;
 // Ceres's Levenberg-Marquardt defaults (TrustRegionMinimizer, LevenbergMarquardtStrategy).
-constexpr double kInitialRadius = 1e4;
 constexpr double kMaxRadius = 1e16;
 constexpr double kMinRadius = 1e-32;
 constexpr double kMinRelativeDecrease = 1e-3;
@@ -117,7 +116,7 @@ class Adjuster {
     BundleSummary summary;
     double cost = linearise();
     summary.initial_cost = cost;
-    double radius = kInitialRadius, decrease_factor = 2.0;
+    double radius = options_.initial_trust_region_radius, decrease_factor = 2.0;
     while (summary.iterations < options_.max_iterations) {
       if (gradient_max_norm() <= options_.gradient_tolerance) break;
       Step step;

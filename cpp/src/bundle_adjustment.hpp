@@ -28,6 +28,7 @@ struct BundleOptions {
   double gradient_tolerance = 1.0;
   double function_tolerance = 0.0;
   double max_step_scale = 16.0;  // largest multiple of an accepted step tried (1: none)
+  double initial_trust_region_radius = 1e4;  // Ceres's: the first step's damping is its inverse
   int num_threads = 1;  // threads for the residuals and the Schur complement
 };
 

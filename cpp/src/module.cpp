@@ -247,7 +247,8 @@ py::tuple bundle_adjust_py(const Eigen::Ref<const RowsX12>& rigs_from_world,
                            const Eigen::Ref<const RowsX6>& pixels_from_tangent,
                            const std::string& loss, double loss_scale, int max_iterations,
                            double gradient_tolerance, double function_tolerance,
-                           double max_step_scale, int num_threads) {
+                           double max_step_scale, double initial_trust_region_radius,
+                           int num_threads) {
   const Eigen::Index num_frames = rigs_from_world.rows(), num_images = sensors_from_rig.rows();
   const Eigen::Index num_points = points.rows(), num_observations = rays.rows();
   if (free_parameters.rows() != num_frames || image_frame.size() != num_images ||
@@ -286,6 +287,7 @@ py::tuple bundle_adjust_py(const Eigen::Ref<const RowsX12>& rigs_from_world,
   options.gradient_tolerance = gradient_tolerance;
   options.function_tolerance = function_tolerance;
   options.max_step_scale = max_step_scale;
+  options.initial_trust_region_radius = initial_trust_region_radius;
   options.num_threads = num_threads;
   BundleSummary summary;
   {
@@ -388,7 +390,8 @@ PYBIND11_MODULE(_opengv, m) {
         py::arg("observation_point"), py::arg("rays"), py::arg("pixels_from_tangent"),
         py::arg("loss"), py::arg("loss_scale"), py::arg("max_iterations"),
         py::arg("gradient_tolerance"), py::arg("function_tolerance"),
-        py::arg("max_step_scale"), py::arg("num_threads"));
+        py::arg("max_step_scale"), py::arg("initial_trust_region_radius"),
+        py::arg("num_threads"));
   m.def("largest_per_row", &largest_per_row_py, py::arg("values"), py::arg("k"),
         py::arg("subset"), py::arg("k_subset"));
   m.def("largest_per_column", &largest_per_column_py, py::arg("values"), py::arg("k"),
