@@ -134,9 +134,12 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
                        loss_scale_px: float) -> int:
     """bundle_adjust with solvers.bundle_adjust, on the keypoints' rays."""
     reconstruction = model.reconstruction
-    flat = np.flatnonzero(model.point_of_flat >= 0)
+    # Every observation of the points the images observe lies in this span: their
+    # tracks, whole, and the other images' observations of them.
+    flat = model.observed_flat(model.flat_span(selection.point_ids, selection.image_ids))
     observed_images = model.image_of_flat[flat]
     observed_points = model.point_of_flat[flat]
+    track_lengths = np.bincount(observed_points, minlength=len(model.xyz))
     lookup_size = max(model.image_ids) + 1
     in_images = np.zeros(lookup_size, bool)
     in_images[list(selection.image_ids)] = True
@@ -175,8 +178,6 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
     if two_cams:
         _hold_scale(model, observed, position, free, rigs_from_world)
     # A point with observations outside the problem stays constant.
-    track_lengths = np.bincount(model.point_of_flat[model.point_of_flat >= 0],
-                                minlength=len(model.xyz))
     constant = np.bincount(observed_points, minlength=len(model.xyz)) < track_lengths
 
     max_iterations, gradient_tolerance = (

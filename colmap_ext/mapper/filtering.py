@@ -111,9 +111,9 @@ def has_triangulation_angle(model: Model, point_ids: list[int], lengths: np.ndar
     the points both bounds leave undecided are compared pair by pair."""
     if not point_ids:
         return np.zeros(0, bool)
-    registered = model.registered
-    centres = np.zeros((max(registered) + 1, 3))
-    centres[registered] = [model.centre(image_id) for image_id in registered]
+    observing = np.unique(images)  # the tracks' images alone: a sequence has thousands
+    centres = np.zeros((int(observing[-1]) + 1, 3))
+    centres[observing] = [model.centre(image_id) for image_id in observing.tolist()]
     rays = np.repeat(model.xyz[point_ids], lengths, axis=0) - centres[images]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
     starts = np.cumsum(lengths) - lengths

@@ -119,6 +119,9 @@ class Model:
         # whether the reconstruction holds an older position than xyz (move_points).
         self.born = np.zeros(len(self.xyz), np.int64)
         self._moved = np.zeros(len(self.xyz), bool)
+        # Per point id, a range [first, last] of point_of_flat that holds all its
+        # observations: widened as they come, never narrowed (flat_span).
+        self._flat_range = np.zeros((len(self.xyz), 2), np.int64)
         self.fixed_frame_ids: set[int] = set()  # frames whose poses bundle adjustment holds
         self.registration_order: list[int] = []  # image ids
         # Images whose observations changed since the mapper last looked (take_changed).
@@ -220,9 +223,12 @@ class Model:
             self.xyz = np.vstack([self.xyz, np.zeros_like(self.xyz)])
             self.born = np.concatenate([self.born, np.zeros_like(self.born)])
             self._moved = np.concatenate([self._moved, np.zeros_like(self._moved)])
+            self._flat_range = np.vstack([self._flat_range, np.zeros_like(self._flat_range)])
         self.xyz[point_id] = xyz
         self._moved[point_id] = False
         self.born[point_id] = self.num_registered
+        flat = [int(self.flat_offset[image_id]) + kp for image_id, kp in track.items()]
+        self._flat_range[point_id] = min(flat), max(flat)
         for image_id, kp in track.items():
             self.point_of[image_id][kp] = point_id
         self._changed.update(track)
@@ -231,6 +237,9 @@ class Model:
     def add_observation(self, point_id: int, image_id: int, kp: int) -> None:
         self.reconstruction.add_observation(point_id, pycolmap.TrackElement(image_id, kp))
         self.point_of[image_id][kp] = point_id
+        flat = int(self.flat_offset[image_id]) + kp
+        first, last = self._flat_range[point_id]
+        self._flat_range[point_id] = min(first, flat), max(last, flat)
         self._changed.add(image_id)
 
     def add_observations_within(self, image_id: int, kps: np.ndarray, point_ids: np.ndarray,
@@ -295,17 +304,36 @@ class Model:
     def track_length(self, point_id: int) -> int:
         return self.reconstruction.points3D[point_id].track.length()
 
-    def track_images(self, point_ids: list[int]) -> tuple[np.ndarray, np.ndarray]:
+    def track_images(self, point_ids: list[int] | np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The observing images of many points at once, from `point_of`: each point's
         track length, and the image ids of every track, point after point."""
         index = np.full(len(self.xyz), -1, np.int64)
         index[point_ids] = np.arange(len(point_ids))
-        flat = np.flatnonzero(self.point_of_flat >= 0)
+        flat = self.observed_flat(self.flat_span(point_ids))
         owner = index[self.point_of_flat[flat]]
         observed = owner >= 0
         owner, flat = owner[observed], flat[observed]
         order = np.argsort(owner, kind="stable")
         return np.bincount(owner, minlength=len(point_ids)), self.image_of_flat[flat[order]]
+
+    def flat_span(self, point_ids: list[int] | np.ndarray,
+                  image_ids: Iterable[int] = ()) -> slice:
+        """A range of point_of_flat that holds every observation of `point_ids` and
+        every keypoint of `image_ids`. The images' keypoints lie in image id order, so on
+        a sequence this is the keypoints of the frames around them: what looks up their
+        tracks touches the neighbourhood, not the whole model."""
+        ranges = self._flat_range[np.asarray(point_ids, np.int64)]
+        image_ids = list(image_ids)
+        firsts = [int(self.flat_offset[i]) for i in image_ids]
+        lasts = [first + len(self.keypoints[i]) for first, i in zip(firsts, image_ids)]
+        if len(ranges):
+            firsts.append(int(ranges[:, 0].min()))
+            lasts.append(int(ranges[:, 1].max()) + 1)
+        return slice(min(firsts, default=0), max(lasts, default=0))
+
+    def observed_flat(self, span: slice) -> np.ndarray:
+        """The indices into point_of_flat within `span` that observe a point."""
+        return span.start + np.flatnonzero(self.point_of_flat[span] >= 0)
 
     def refresh_points(self, point_ids: Iterable[int]) -> None:
         """Read the positions of `point_ids` (a step moved them in the reconstruction)
@@ -387,12 +415,12 @@ class Model:
 
     def covisible_images(self, image_id: int) -> dict[int, int]:
         """Registered images sharing points with `image_id`, with the number shared
-        (from `point_of`, in one pass over every keypoint: faster than reading the tracks
-        of the image's points one by one)."""
+        (from `point_of`, in one pass over the keypoints of flat_span: faster than
+        reading the tracks of the image's points one by one)."""
         _, point_ids = self.observations(image_id)
         shared = np.zeros(len(self.xyz), bool)
         shared[point_ids] = True
-        observed = np.flatnonzero(self.point_of_flat >= 0)
+        observed = self.observed_flat(self.flat_span(point_ids))
         observed = observed[shared[self.point_of_flat[observed]]]
         images, counts = np.unique(self.image_of_flat[observed], return_counts=True)
         return {other: count for other, count in zip(images.tolist(), counts.tolist())
