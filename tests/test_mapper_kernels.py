@@ -536,3 +536,25 @@ def test_a_pose_from_twelve_pixel_inliers_is_taken_from_those_within_four(
         assert np.degrees(error) > 0.3
     else:
         assert np.degrees(error) < max_rotation_error_deg
+
+
+def test_flat_span_holds_every_observation_of_its_points(tmp_path) -> None:
+    """Model.flat_span, where track lookups search: it holds every observation of the
+    points asked for, as they are made and as observations join them, and the keypoints
+    of the images asked for; a point seen by the first two of four views leaves the
+    last view's keypoints out."""
+    model, points3D, views, keypoint_of = posed_views_without_points(tmp_path, 4)
+    shared = sorted(set(keypoint_of[0]) & set(keypoint_of[1]) & set(keypoint_of[2]))[:5]
+    ids = [model.add_point(points3D[p], {views[0]: keypoint_of[0][p],
+                                         views[1]: keypoint_of[1][p]}) for p in shared]
+    span = model.flat_span(ids)
+    assert span.stop <= model.flat_offset[views[3]]
+    model.add_observation(ids[0], views[2], keypoint_of[2][shared[0]])
+    for point_id in ids:
+        lengths, images = model.track_images([point_id])
+        assert sorted(images.tolist()) == sorted(model.track(point_id))
+        flat = model.observed_flat(model.flat_span([point_id]))
+        assert sorted(model.point_of_flat[flat].tolist()).count(point_id) == lengths[0]
+    assert model.covisible_images(views[2]) == {views[0]: 1, views[1]: 1}
+    span = model.flat_span(ids[1:], [views[3]])
+    assert span.stop == model.flat_offset[views[3]] + len(model.keypoints[views[3]])
