@@ -49,8 +49,7 @@ def adjustment_options(ba: BundleAdjustmentOptions, local: bool, num_threads: in
     ba_options.ceres.solver_options.initial_trust_region_radius = \
         ba.trust_region_radius(loss or ba.loss, local)
     ba_options.ceres.solver_options.function_tolerance = \
-        ba.least_squares_function_tolerance if (loss or ba.loss) == "trivial" \
-        else ba.function_tolerance
+        ba.function_tolerance_for(loss or ba.loss)
     ba_options.ceres.solver_options.num_threads = num_threads
     ba_options.ceres.min_num_residuals_for_cpu_multi_threading = \
         ba.min_num_residuals_for_multi_threading
@@ -189,8 +188,7 @@ def _adjust_calibrated(model: Model, selection: _Selection, ordered: list[int],
             frame_index, model.xyz[point_ids], ~constant[point_ids], image_index,
             point_index, rays, jacobians, loss=loss, loss_scale=loss_scale_px,
             max_iterations=max_iterations, gradient_tolerance=gradient_tolerance,
-            function_tolerance=ba.least_squares_function_tolerance if loss == "trivial"
-            else ba.function_tolerance, max_step_scale=ba.max_step_scale,
+            function_tolerance=ba.function_tolerance_for(loss), max_step_scale=ba.max_step_scale,
             initial_trust_region_radius=ba.trust_region_radius(loss, local),
             num_threads=num_threads if 2 * len(flat) >= ba.min_num_residuals_for_multi_threading
             else 1)

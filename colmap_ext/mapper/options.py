@@ -268,6 +268,11 @@ class BundleAdjustmentOptions:
     refine_sensor_from_rig: bool = False
     constant_rig_ids: tuple[int, ...] = ()
 
+    def function_tolerance_for(self, loss: str) -> float:
+        """The function tolerance of an adjustment under `loss`."""
+        return self.least_squares_function_tolerance if loss == "trivial" \
+            else self.function_tolerance
+
     def trust_region_radius(self, loss: str, local: bool) -> float:
         """The initial trust region radius of an adjustment under `loss`."""
         return self.least_squares_global_initial_trust_region_radius \
