@@ -11,6 +11,7 @@ import argparse
 import importlib
 import signal
 import sys
+import tempfile
 from typing import NoReturn
 
 from colmap_ext import __version__
@@ -88,6 +89,9 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     limit_malloc_arenas()  # before any thread starts: imports start BLAS's
+    # Python finds TMPDIR by writing a probe file with a random name there and removing
+    # it: done once here, before any work, so that a kill -9 mid-run never leaves it.
+    tempfile.gettempdir()
     argv = sys.argv[1:] if argv is None else argv
     try:
         # pycolmap's glog installs a stack dump for SIGTERM as pycolmap loads: load it

@@ -17,6 +17,7 @@ import math
 import multiprocessing
 import os
 import signal
+import tempfile
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, wait
@@ -116,7 +117,8 @@ class LocalExecutor(Executor):
         if self.processes:
             pool = ProcessPoolExecutor(self.num_workers,
                                        mp_context=multiprocessing.get_context("spawn"),
-                                       initializer=start_worker, initargs=(os.getpid(),))
+                                       initializer=start_worker,
+                                       initargs=(os.getpid(), tempfile.gettempdir()))
         else:
             pool = ThreadPoolExecutor(self.num_workers)
         try:
@@ -139,11 +141,17 @@ class LocalExecutor(Executor):
         return first.result(), [future for future in pending if future is not first]
 
 
-def start_worker(parent_pid: int) -> None:
-    """In a local pool's worker process: ended with its parent (`end_with_parent`), and
-    tqdm's lock a thread lock. tqdm makes a multiprocessing lock by default, even for a
-    disabled bar: a semaphore that a worker killed with its pool (on Ctrl-C) leaves to
-    Python's resource tracker, which then warns of it after the command's last line."""
+def start_worker(parent_pid: int, temporary_folder: str) -> None:
+    """In a local pool's worker process: ended with its parent (`end_with_parent`), its
+    temporary folder the parent's, and tqdm's lock a thread lock.
+
+    Python finds its temporary folder by writing a file with a random name there and
+    removing it; a worker ended with its killed parent in between left that file in
+    TMPDIR, so the folder is given, not probed. tqdm makes a multiprocessing lock by
+    default, even for a disabled bar: a semaphore that a worker killed with its pool (on
+    Ctrl-C) leaves to Python's resource tracker, which then warns of it after the
+    command's last line."""
+    tempfile.tempdir = temporary_folder
     tqdm.set_lock(threading.RLock())
     end_with_parent(parent_pid)
 

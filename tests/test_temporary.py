@@ -9,6 +9,7 @@ import sys
 import tempfile
 from pathlib import Path
 
+from colmap_ext.executors import LocalExecutor
 from colmap_ext.temporary import OWNER_LOCK, OwnedTemporaryDirectory
 
 # Another process holding a temporary folder until its stdin closes.
@@ -41,3 +42,15 @@ def test_only_the_leftovers_of_ended_runs_are_removed(tmp_path: Path) -> None:
     finally:
         holder.communicate("")
     assert not live.exists(), "the holder did not clean up after itself"
+
+
+def test_worker_processes_take_the_parents_temporary_folder(tmp_path: Path, monkeypatch) -> None:
+    """A worker process is given its parent's temporary folder rather than probing TMPDIR
+    (Python writes a randomly named file there to probe it, which a worker ended with its
+    killed parent left behind)."""
+    given = tmp_path / "given"
+    given.mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", str(given))
+    workers = LocalExecutor(2, processes=True)
+    found = list(workers.map(tempfile.gettempdir, [()] * 4, total=4, desc="", progress=False))
+    assert found == [str(given)] * 4
