@@ -28,7 +28,11 @@ and median (`colmap-ext evaluate`'s, over the images), ATE median and max (metre
 centres after the similarity that best aligns them onto the ground truth; for a rig, after
 the rigid transform too), and the medians of wall time, CPU time (user and system) and peak
 memory, their ratios to COLMAP incremental's, and per frame, so that the synthetic sizes
-show how the cost grows. A mapper that exits with an error is a failed row.
+show how the cost grows. A mapper that exits with an error is a failed row. On a single
+camera's drive, the row "true tracks, least squares" is the maximum-likelihood reference:
+every true observation (the database's keypoints) adjusted from the truth to convergence,
+which a mapper can approach but not be expected to beat; its tracks join observations that
+matching never links (a point unseen for more than the matched frames and seen again).
 
     python benchmarks/sequences.py [--sets kitti03_600-800,drive200,...] [--runs 3] [--seed 0]
         [--mappers ours,colmap_incremental,colmap_global] [--data DIR] [--work_dir DIR]
@@ -57,6 +61,10 @@ KEYPOINTS_PER_IMAGE = 1000
 MAX_DISTANCE = 40.0  # metres: farther points are not observed
 STEREO_BASELINE = 0.54  # metres between the stereo drives' cameras (KITTI's)
 STEREO_PREFIXES = ["left/", "right/"]
+# A single camera's drive: its true tracks (every true observation, the database's keypoints)
+# at the truth, in this folder beside the database, and the row of their least squares.
+TRUE_TRACKS = "true_tracks"
+TRUE_TRACKS_ROW = "true tracks, least squares"
 DRIVES = {"drive200": {"num_images": 200}, "drive800": {"num_images": 800},
           "drive2000": {"num_images": 2000},
           "drive10000": {"num_images": 10000}, "loop500": {"num_images": 500, "loop": True},
@@ -96,7 +104,8 @@ def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
 
     from colmap_ext.rigs import apply_rig_config, read_rig_config
     from colmap_ext.synthetic import (driving_scene, points_for_keypoints, rig_scene,
-                                      sequential_pairs, side_by_side_rig, write_ground_truth,
+                                      sequential_pairs, side_by_side_rig,
+                                      true_tracks_reconstruction, write_ground_truth,
                                       write_placeholder_images, write_rig_config,
                                       write_synthetic_database)
 
@@ -108,7 +117,7 @@ def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
     scene = rig_scene(drive, cams_from_rig, STEREO_PREFIXES) if stereo else drive
     note = f"{name}: {drive.num_images} frames" + (", a loop" if options.get("loop") else "") + \
         (f" of a stereo rig ({STEREO_BASELINE} m)" if stereo else "")
-    if not (folder / "database.db").exists():
+    if not (folder / "database.db").exists() or not (stereo or (folder / TRUE_TRACKS).is_dir()):
         start = time.perf_counter()
         shutil.rmtree(folder, ignore_errors=True)
         (folder / "images").mkdir(parents=True)
@@ -121,6 +130,10 @@ def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
         if stereo:
             write_rig_config(folder / "rig.json", scene.camera, cams_from_rig, STEREO_PREFIXES)
             apply_rig_config(folder / "database.db", read_rig_config(folder / "rig.json"))
+        else:
+            (folder / TRUE_TRACKS).mkdir()
+            true_tracks_reconstruction(folder / "database.db", scene, points, truth).write(
+                folder / TRUE_TRACKS)
         write_placeholder_images(folder / "images", scene.image_names)
         write_ground_truth(scene, folder / "ground_truth")
         keypoints = np.mean([len(ids) for ids in truth.point_ids])
@@ -131,19 +144,24 @@ def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
 
 
 def evaluate_models(output: Path, truth, metric: bool) -> dict:
-    """The number of models in `output`, and the largest one against the ground truth:
-    frames, R_err (evaluate's) and ATE (centres after a similarity onto the truth's; a
-    `metric` model's after a rigid transform too)."""
+    """The number of models in `output`, and the largest one against the ground truth
+    (evaluate_model)."""
+    model = largest_model(output) if output.is_dir() else None
+    if model is None or model.num_reg_images() < 3:
+        return {"error": "no model"}
+    num_models = sum(1 for folder in output.iterdir() if (folder / "images.bin").is_file())
+    return {"num_models": num_models, **evaluate_model(model, truth, metric)}
+
+
+def evaluate_model(model, truth, metric: bool) -> dict:
+    """A model against the ground truth: frames, R_err (evaluate's) and ATE (centres after
+    a similarity onto the truth's; a `metric` model's after a rigid transform too)."""
     import numpy as np
 
     from colmap_ext.errors import UserError
     from colmap_ext.evaluate import aligned_to_ground_truth, evaluate
 
-    model = largest_model(output) if output.is_dir() else None
-    if model is None or model.num_reg_images() < 3:
-        return {"error": "no model"}
-    entry = {"num_models": sum(1 for folder in output.iterdir() if (folder / "images.bin").is_file()),
-             "num_registered": model.num_reg_frames()}
+    entry = {"num_registered": model.num_reg_frames()}
     try:
         report = evaluate(model, truth)
     except UserError as error:
@@ -177,6 +195,14 @@ def measure(prepared: PreparedSet, mappers: list[str], runs: int, seed: int, wor
                                      metric=bool(DRIVES.get(prepared.name, {}).get("stereo"))))
         if entry["runs"][-1]["exit_code"] != 0:
             entry["error"] = failure(models[mapper].parent / "log.txt")
+    true_tracks = prepared.database.parent / TRUE_TRACKS
+    if true_tracks.is_dir():
+        import pycolmap
+        from neutral import true_tracks_least_squares
+
+        reference = true_tracks_least_squares(pycolmap.Reconstruction(true_tracks))
+        results[TRUE_TRACKS_ROW] = {"num_models": 1, "time_s": None, "peak_mib": None,
+                                    **evaluate_model(reference, truth, metric=False)}
     return results
 
 
@@ -204,7 +230,7 @@ def table(all_results: dict[str, tuple[PreparedSet, dict[str, dict]]]) -> str:
                 cell("{:.3f} / {:.3f}", "R_err_max_deg", "R_err_median_deg"),
                 cell("{:.3f} / {:.3f}", "ate_median", "ate_max"),
                 cell("{:.3f} / {:.3f}", "ate_rigid_median", "ate_rigid_max"),
-                "failed" if time_s is None else
+                ("failed" if "runs" in entry else "–") if time_s is None else
                 f"{time_s:.1f} ({entry['time_range'][0]:.1f}-{entry['time_range'][1]:.1f})",
                 cell("{:.2f}x", "time_s_ratio"), cell("{:.0f}", "cpu_s"), cell("{:.2f}x", "cpu_s_ratio"),
                 "–" if peak is None else f"{peak:.0f}", cell("{:.2f}x", "peak_mib_ratio"),

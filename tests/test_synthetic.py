@@ -19,6 +19,7 @@ from colmap_ext.synthetic.database import (
     scene_points,
     sequential_pairs,
     sift_like,
+    true_tracks_reconstruction,
     write_rig_config,
     write_synthetic_database,
 )
@@ -162,6 +163,28 @@ def test_keypoint_noise_has_the_requested_size(tmp_path: Path, ring) -> None:
             [db.read_keypoints(i)[:, :2] - p for i, p in zip(truth.image_ids, truth.projections)]
         )
     assert residuals.std() == pytest.approx(0.5, rel=0.1)
+
+
+def test_true_tracks_hold_every_true_observation_at_the_truth(tmp_path: Path, ring) -> None:
+    """The maximum-likelihood reference's start: every keypoint of a point seen twice or
+    more is an observation of that point, at the database's (noisy) position, the images
+    at their true poses; its reprojection errors are the noise's."""
+    scene, points = ring
+    truth = write_synthetic_database(tmp_path / "db.db", scene, points, noise_px=0.5)
+    model = true_tracks_reconstruction(tmp_path / "db.db", scene, points, truth)
+    seen = np.bincount(np.concatenate(truth.point_ids))
+    assert model.num_points3D() == np.count_nonzero(seen >= 2)
+    assert model.compute_num_observations() == seen[seen >= 2].sum()
+    for view, image_id in enumerate(truth.image_ids):
+        image = model.images[image_id]
+        assert np.allclose(image.cam_from_world().matrix(), scene.cams_from_world[view].matrix())
+        for kp in np.flatnonzero(seen[truth.point_ids[view]] >= 2)[:20]:
+            point = model.points3D[image.points2D[kp].point3D_id]
+            np.testing.assert_allclose(point.xyz, points[truth.point_ids[view][kp]])
+    errors = [np.linalg.norm(model.cameras[image.camera_id].img_from_cam(
+        to_cam(image.cam_from_world(), model.points3D[p.point3D_id].xyz[None]))[0] - p.xy)
+        for image in model.images.values() for p in image.points2D if p.has_point3D()]
+    assert np.sqrt(np.mean(np.square(errors))) == pytest.approx(0.5 * np.sqrt(2), rel=0.1)
 
 
 def test_descriptors_match_their_own_point() -> None:

@@ -272,6 +272,35 @@ def two_view_geometry(scene: Scene, i: int, j: int, inlier_matches: np.ndarray) 
     return geometry
 
 
+def true_tracks_reconstruction(database_path: str | Path, scene: Scene, points3D: np.ndarray,
+                               truth: SyntheticDatabase) -> pycolmap.Reconstruction:
+    """The database's images at the scene's true poses (trivial frames) and the true
+    points with every true observation, each keypoint as the database holds it (with its
+    noise): the tracks a perfect association of keypoints gives."""
+    reconstruction = pycolmap.Reconstruction()
+    with pycolmap.Database.open(database_path) as db:
+        for camera in db.read_all_cameras():
+            reconstruction.add_camera_with_trivial_rig(camera)
+        images = {image.image_id: image for image in db.read_all_images()}
+        keypoints = {image_id: db.read_keypoints(image_id)[:, :2] for image_id in truth.image_ids}
+    for view, image_id in enumerate(truth.image_ids):
+        image = pycolmap.Image(name=images[image_id].name, camera_id=images[image_id].camera_id,
+                               image_id=image_id)
+        image.points2D = pycolmap.Point2DList(
+            [pycolmap.Point2D(xy) for xy in keypoints[image_id].astype(np.float64)])
+        reconstruction.add_image_with_trivial_frame(image, scene.cams_from_world[view])
+    tracks: dict[int, list[pycolmap.TrackElement]] = {}
+    for image_id, point_ids in zip(truth.image_ids, truth.point_ids):
+        for kp, point in enumerate(point_ids.tolist()):
+            tracks.setdefault(point, []).append(pycolmap.TrackElement(image_id, kp))
+    for point, elements in sorted(tracks.items()):
+        if len(elements) >= 2:
+            track = pycolmap.Track()
+            track.add_elements(elements)
+            reconstruction.add_point3D(points3D[point], track)
+    return reconstruction
+
+
 def write_images(db: pycolmap.Database, scene: Scene) -> list[int]:
     """Write the cameras (the scene's intrinsics, one per folder of the image names, as
     COLMAP's per-folder import makes them: a rig's cameras, see rig_scene), each with its
