@@ -150,9 +150,11 @@ def keypoints_near(model: Model, image_id: int, kps: np.ndarray, xyz: np.ndarray
                    radius_px: float) -> tuple[np.ndarray, np.ndarray]:
     """Pairs (row of xyz, keypoint of kps) where the point projects within `radius_px`
     of the keypoint in `image_id` (keypoints bucketed in square cells of that side)."""
+    if not len(kps) or not len(xyz):
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
     pose = model.pose(image_id).matrix()
     x_cam = xyz @ pose[:, :3].T + pose[:, 3]
-    projected = model.camera(image_id).img_from_cam(x_cam) if len(x_cam) else np.zeros((0, 2))
+    projected = model.camera(image_id).img_from_cam(x_cam)  # NaN where it cannot project
     rows = np.flatnonzero(np.isfinite(projected).all(axis=1))
     projected = projected[rows]
     positions = model.keypoints[image_id][kps]
