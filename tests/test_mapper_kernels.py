@@ -22,7 +22,7 @@ from colmap_ext.mapper.model import Model, cross_norms
 from colmap_ext.mapper.filtering import has_triangulation_angle
 from colmap_ext.mapper.refinement import points_off_matches
 from colmap_ext.mapper.registration import Outcome, epipolar_support, register_frame
-from colmap_ext.mapper.triangulation import complete_tracks, find_points_by_projection, merge_tracks
+from colmap_ext.mapper.triangulation import complete_tracks, merge_tracks
 from colmap_ext.mapper.two_view import pair_graph
 from colmap_ext.synthetic.database import scene_points, write_synthetic_database
 from colmap_ext.synthetic.scene import ring_scene
@@ -558,27 +558,3 @@ def test_flat_span_holds_every_observation_of_its_points(tmp_path) -> None:
     assert model.covisible_images(views[2]) == {views[0]: 1, views[1]: 1}
     span = model.flat_span(ids[1:], [views[3]])
     assert span.stop == model.flat_offset[views[3]] + len(model.keypoints[views[3]])
-
-
-def test_points_found_by_projection_are_the_true_ones(tmp_path) -> None:
-    """Three views of a synthetic ring at their true poses; true points observed in the
-    first two views alone (a track that matching left short) gain their keypoint in the
-    third, where they project near it and its descriptor is theirs; a point placed on a
-    true point of the third view but observed through another point's keypoints (a
-    different descriptor) gains nothing."""
-    model, points3D, views, keypoint_of = posed_views_without_points(tmp_path, 3)
-    model.nearest = NearestDescriptors(model.descriptors, {i: len(model.keypoints[i]) for i in views},
-                                       k=3, max_bytes=2**30, num_threads=1)
-    seen = sorted(set(keypoint_of[0]) & set(keypoint_of[1]) & set(keypoint_of[2]))
-    linking, short, decoy, other = seen[0], seen[1:21], seen[21], seen[22]
-    model.add_point(points3D[linking], {v: keypoint_of[k][linking] for k, v in enumerate(views)})
-    short_ids = [model.add_point(points3D[p], {views[0]: keypoint_of[0][p],
-                                               views[1]: keypoint_of[1][p]}) for p in short]
-    decoy_id = model.add_point(points3D[decoy], {views[0]: keypoint_of[0][other],
-                                                 views[1]: keypoint_of[1][other]})
-    options = MapperOptions()
-    added = find_points_by_projection(model, views[2], options.guided_matching, 3.0)
-    assert added == len(short)
-    for point_id, p in zip(short_ids, short):
-        assert model.track(point_id)[views[2]] == keypoint_of[2][p]
-    assert views[2] not in model.track(decoy_id)

@@ -120,10 +120,6 @@ class GuidedMatchingOptions:
     # new image's to model points, a pair's free keypoints to the other image's), they
     # stand in for the descriptor search, which could add next to nothing; 1: always search.
     skip_search_verified_share: float = 0.8
-    # A point found by projection (triangulation.find_points_by_projection): its new
-    # keypoint's descriptor is the image's nearest to the point's, nearer than the second
-    # by this ratio (COLMAP's SiftMatching.max_ratio).
-    max_ratio: float = 0.8
 
     def check(self) -> None:
         _require(self.num_neighbors >= 1, self, "num_neighbors", ">= 1")
@@ -134,7 +130,6 @@ class GuidedMatchingOptions:
         _require(self.max_search_pairs >= 0, self, "max_search_pairs", ">= 0")
         _require(0 <= self.skip_search_verified_share <= 1, self, "skip_search_verified_share",
                  "in [0, 1]")
-        _require(0 < self.max_ratio <= 1, self, "max_ratio", "in (0, 1]")
 
 
 @dataclass

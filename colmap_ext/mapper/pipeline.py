@@ -30,8 +30,7 @@ from colmap_ext.mapper.refinement import (MatchGraphs, ModelAdjuster, refine_joi
 from colmap_ext.mapper.registration import (Correspondences, Outcome,
                                             descriptor_correspondences, register_frame,
                                             searches_descriptors, track_correspondences)
-from colmap_ext.mapper.triangulation import (complete_tracks, find_points_by_projection,
-                                             merge_tracks, triangulate_image)
+from colmap_ext.mapper.triangulation import complete_tracks, merge_tracks, triangulate_image
 from colmap_ext.mapper.two_view import Pair, pair_graph, verified_matches
 from colmap_ext.memory import return_freed_memory
 from colmap_ext.model_io import MAPPER_OUTPUT, read_model, replacing, write_json, write_models
@@ -243,10 +242,6 @@ class IncrementalMapper:
         with self.timer("triangulation"):
             triangulate_images(self.model, image_ids, self.graphs, options.guided_matching,
                                options.triangulation)
-            for image in image_ids:
-                self.timer.counts["observations found by projection"] += \
-                    find_points_by_projection(self.model, image, options.guided_matching,
-                                              options.triangulation.max_reproj_error_px)
         ratio = options.bundle_adjustment.global_images_ratio
         if self.model.num_registered >= ratio * self.num_images_at_global_ba:
             self._global_adjustment()

@@ -9,7 +9,6 @@ import numpy as np
 import pycolmap
 
 import solvers
-from colmap_ext.mapper.descriptors import BLAS, nearest_unit_descriptors, unit_descriptors
 from colmap_ext.mapper.guided_matching import compatible_features, verified_partners
 from colmap_ext.mapper.model import Model
 from colmap_ext.mapper.options import GuidedMatchingOptions, TriangulationOptions
@@ -97,90 +96,6 @@ def complete_tracks(model: Model, verified: dict[int, dict[int, np.ndarray]],
                                                    point_ids[missing],
                                                    triangulation.max_reproj_error_px)
     return added
-
-
-def find_points_by_projection(model: Model, image_id: int, guided: GuidedMatchingOptions,
-                              max_error_px: float) -> int:
-    """Free keypoints of a registered image that see points of its covisible images join
-    those points' tracks: where the point projects within `max_error_px` of the keypoint,
-    whose descriptor is compatible with the point's observation in the image sharing most
-    points with this one (guided.max_descriptor_distance) and the image's nearest to it by
-    guided.max_ratio. Matching pairs only images near each other in a sequence: a feature
-    unseen for longer (an occlusion, a missed detection) came back as a second point of
-    the same track, and the split tracks no longer tied distant frames together, which
-    let the trajectory drift (BENCHMARKS.md, "Sequences"). Returns the observations added."""
-    free = np.flatnonzero(model.point_of[image_id] < 0)
-    covisible = model.covisible_images(image_id)
-    if not len(free) or not covisible:
-        return 0
-    # The points of the covisible images, each with its observation in the image
-    # sharing most points with this one, less those this image observes.
-    others = sorted(covisible, key=lambda other: -covisible[other])
-    observed = [model.observations(other) for other in others]
-    point_ids = np.concatenate([ids for _, ids in observed])
-    point_ids, first = np.unique(point_ids, return_index=True)
-    reference_image = np.repeat(others, [len(ids) for _, ids in observed])[first]
-    reference_kp = np.concatenate([kps for kps, _ in observed])[first]
-    unseen = ~np.isin(point_ids, model.observations(image_id)[1])
-    point_ids, reference_image, reference_kp = \
-        point_ids[unseen], reference_image[unseen], reference_kp[unseen]
-    point_rows, kps = keypoints_near(model, image_id, free, model.xyz[point_ids], max_error_px)
-    if not len(kps) or len(model.keypoints[image_id]) < 2:
-        return 0
-    references = np.empty((len(kps), model.descriptors[image_id].shape[1]), np.uint8)
-    for other in np.unique(reference_image[point_rows]).tolist():
-        rows = np.flatnonzero(reference_image[point_rows] == other)
-        references[rows] = model.descriptors[other][reference_kp[point_rows[rows]]]
-    image_descriptors = unit_descriptors(model.descriptors[image_id])
-    references = unit_descriptors(references)
-    angles = np.arccos(np.clip(np.einsum("ij,ij->i", image_descriptors[kps], references), -1, 1))
-    compatible = np.flatnonzero(angles <= guided.max_descriptor_distance)
-    # The ratio test of COLMAP's SIFT matcher, over all the image's keypoints.
-    with BLAS.limit(limits=1, user_api="blas"):  # a few rows: other threads only spin
-        nearest, nearest_angles, _ = nearest_unit_descriptors(references[compatible],
-                                                              image_descriptors, 2)
-    distinct = (nearest[:, 0] == kps[compatible]) & \
-        (nearest_angles[:, 0] < guided.max_ratio * nearest_angles[:, 1])
-    compatible = compatible[distinct]
-    return model.add_observations_within(image_id, kps[compatible],
-                                         point_ids[point_rows[compatible]], max_error_px)
-
-
-def keypoints_near(model: Model, image_id: int, kps: np.ndarray, xyz: np.ndarray,
-                   radius_px: float) -> tuple[np.ndarray, np.ndarray]:
-    """Pairs (row of xyz, keypoint of kps) where the point projects within `radius_px`
-    of the keypoint in `image_id` (keypoints bucketed in square cells of that side)."""
-    if not len(kps) or not len(xyz):
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    pose = model.pose(image_id).matrix()
-    x_cam = xyz @ pose[:, :3].T + pose[:, 3]
-    projected = model.camera(image_id).img_from_cam(x_cam)  # NaN where it cannot project
-    rows = np.flatnonzero(np.isfinite(projected).all(axis=1))
-    projected = projected[rows]
-    positions = model.keypoints[image_id][kps]
-    cell = np.floor(positions / radius_px).astype(np.int64)
-    width = int(cell[:, 0].max()) + 3
-    keys = (cell[:, 1] + 1) * width + cell[:, 0] + 1
-    order = np.argsort(keys, kind="stable")
-    keys = keys[order]
-    point_cell = np.floor(projected / radius_px).astype(np.int64)
-    inside = (point_cell >= -1).all(axis=1) & (point_cell[:, 0] <= width - 2) & \
-        (point_cell[:, 1] <= int(cell[:, 1].max()) + 1)
-    rows, projected, point_cell = rows[inside], projected[inside], point_cell[inside]
-    pairs_rows, pairs_kps = [], []
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            key = (point_cell[:, 1] + dy + 1) * width + point_cell[:, 0] + dx + 1
-            start, stop = np.searchsorted(keys, key), np.searchsorted(keys, key, side="right")
-            counts = stop - start
-            which = np.repeat(np.arange(len(key)), counts)
-            at = np.arange(counts.sum()) - np.repeat(np.cumsum(counts) - counts, counts) + \
-                np.repeat(start, counts)
-            pairs_rows.append(which)
-            pairs_kps.append(order[at])
-    which, near = np.concatenate(pairs_rows), np.concatenate(pairs_kps)
-    close = np.linalg.norm(projected[which] - positions[near], axis=1) <= radius_px
-    return rows[which[close]], kps[near[close]]
 
 
 @dataclass
