@@ -117,7 +117,8 @@ def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
     scene = rig_scene(drive, cams_from_rig, STEREO_PREFIXES) if stereo else drive
     note = f"{name}: {drive.num_images} frames" + (", a loop" if options.get("loop") else "") + \
         (f" of a stereo rig ({STEREO_BASELINE} m)" if stereo else "")
-    if not (folder / "database.db").exists() or not (stereo or (folder / TRUE_TRACKS).is_dir()):
+    written = (folder / "database.db").exists() and (stereo or (folder / TRUE_TRACKS).is_dir())
+    if not written:
         start = time.perf_counter()
         shutil.rmtree(folder, ignore_errors=True)
         (folder / "images").mkdir(parents=True)

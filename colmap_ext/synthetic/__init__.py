@@ -7,9 +7,9 @@
   `write_placeholder_images`: black files under the images' names, for a database without images.
 - `scene_points`, `points_for_keypoints`, `write_synthetic_database`: a COLMAP database of
   projected points (keypoints, descriptors, matches with outliers), without images;
-  `sequential_pairs` restricts its matches to a sequence's neighbours; `true_tracks_reconstruction`
-  the truth's poses, points and every true observation, the maximum-likelihood reference's start; `write_rig_config`: COLMAP's
-  rig configuration of a rig scene, to apply to its database.
+  `sequential_pairs` restricts its matches to a sequence's neighbours; `write_rig_config`: COLMAP's
+  rig configuration of a rig scene, to apply to its database; `true_tracks_reconstruction`: the
+  truth's poses and points with every true observation (a maximum-likelihood reference's start).
 """
 
 from colmap_ext.synthetic.database import (
@@ -44,9 +44,9 @@ __all__ = [
     "ring_scene",
     "scene_points",
     "sequential_pairs",
-    "true_tracks_reconstruction",
     "side_by_side_rig",
     "trajectory_scene",
+    "true_tracks_reconstruction",
     "write_ground_truth",
     "write_par_file",
     "write_placeholder_images",
