@@ -163,8 +163,8 @@ class NearestDescriptors:
 
     def release(self) -> None:
         """Give up the searches, unit descriptors and descriptors kept: a model's last
-        adjustments and retriangulation ask for none, and they are its peak of memory.
-        A later search reads and searches again."""
+        adjustments ask for none, and they are its peak of memory. A later search (a
+        retriangulation's) reads and searches again."""
         self.pairs.clear()
         self.units.clear()
         if hasattr(self.descriptors, "release"):  # a DescriptorReader, not a dict

@@ -258,7 +258,10 @@ class IncrementalMapper:
         fixed threshold by noise alone). There a verified match within the threshold is a
         true observation; elsewhere the near-miss matches they would add cost the real
         sets accuracy, and the finished model's retriangulation completes the tracks
-        within the noise's limits."""
+        within the noise's limits. The descriptor searches kept go first: the adjustment
+        is the growing model's peak of memory, and a search is quick to run again."""
+        self.model.nearest.release()
+        return_freed_memory()
         self.adjuster.global_adjustment()
         if self.adjuster.errors_gaussian:
             triangulation = self.options.triangulation

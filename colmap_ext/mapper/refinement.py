@@ -21,6 +21,7 @@ from colmap_ext.mapper.options import (BundleAdjustmentOptions, FilteringOptions
 from colmap_ext.mapper.triangulation import (complete_tracks, merge_tracks, track_links,
                                              triangulate_image)
 from colmap_ext.mapper.two_view import Pair, pair_graph
+from colmap_ext.memory import return_freed_memory
 from colmap_ext.timing import StageTimer
 
 # Rounds of complete_and_merge_tracks at most (drive800: 3 changed the model, the 4th nothing).
@@ -204,6 +205,11 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
         # The points the final filter would drop anyway (two-view tracks, narrow
         # angles) go first: the adjustment then solves the model's size, not twice it.
         filter_points(model, registered, options.filtering, final=True)
+    # What the triangulation searched and matched with is memory the adjustment, the
+    # model's peak, needs: the descriptor searches kept and the match graphs.
+    model.nearest.release()
+    del graphs
+    return_freed_memory()
     # One round: the observations are fresh, and a second changed nothing measured.
     ModelAdjuster.of(model, options, timer).global_adjustment(final=True, rounds=1)
     return model.reconstruction.num_points3D()
