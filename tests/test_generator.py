@@ -258,3 +258,28 @@ def test_descriptor_searches_are_given_up_before_every_global_adjustment(tmp_pat
     assert timer.counts["retriangulations left out"] == 0
     assert max(kept[True]) > 0  # the local adjustments' searches stay
     assert len(kept[False]) >= 3 and max(kept[False]) == 0
+
+
+@pytest.mark.parametrize("freq", [1, 500])
+def test_global_adjustments_come_at_least_every_global_images_freq_images(tmp_path,
+                                                                         monkeypatch, freq):
+    """--Mapper.ba_global_frames_freq, as COLMAP's: a global adjustment whenever the model
+    has grown by global_images_ratio or by global_images_freq images, whichever comes
+    first; on 12 images the ratio alone leaves gaps of 2."""
+    from colmap_ext.mapper.options import BundleAdjustmentOptions
+    from colmap_ext.mapper.pipeline import IncrementalMapper
+    sizes: list[int] = []
+    global_adjustment = IncrementalMapper._global_adjustment
+
+    def recording(self):
+        sizes.append(self.model.num_registered)
+        global_adjustment(self)
+
+    monkeypatch.setattr(IncrementalMapper, "_global_adjustment", recording)
+    generate(tmp_path, "PINHOLE", 0.5, 1.0, 0)
+    options = MapperOptions(seed=0, bundle_adjustment=BundleAdjustmentOptions(
+        global_images_freq=freq))
+    model = reconstruct(read_database(tmp_path / "database.db"), options, progress=False)[0]
+    assert model.num_reg_images() == 12
+    gaps = np.diff(sizes)
+    assert (gaps.max() == 1) == (freq == 1), sizes

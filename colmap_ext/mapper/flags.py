@@ -139,7 +139,7 @@ _BOUNDS = ("the intrinsics are known; refined ones (--Mapper.ba_refine_*) are no
 _TRIANGULATOR = ("points come from the method's guided matching (features compatible in at "
                  "least three images), not from COLMAP's triangulator")
 _BA_SCHEDULE = ("global adjustment runs whenever the model grows by --Mapper.ba_global_frames_"
-                "ratio, each adjustment followed by filtering")
+                "ratio or --Mapper.ba_global_frames_freq, each adjustment followed by filtering")
 _GPU = "bundle adjustment runs on the CPU (ours, and pycolmap's Ceres)"
 _NO_PRIORS = "position priors are not used"
 
@@ -223,8 +223,9 @@ FLAGS: tuple[Flag, ...] = (
          "bundle_adjustment.global_images_ratio", "global adjustment whenever the model has grown by this "
          "ratio", aliases=("Mapper.ba_global_images_ratio",)),
     _na("Mapper.ba_global_points_ratio", float, "ba_global_points_ratio", 1.1, _BA_SCHEDULE),
-    _na("Mapper.ba_global_frames_freq", int, "ba_global_frames_freq", 500, _BA_SCHEDULE,
-        aliases=("Mapper.ba_global_images_freq",)),
+    Flag("Mapper.ba_global_frames_freq", int, "ba_global_frames_freq",
+         "bundle_adjustment.global_images_freq", "global adjustment also whenever the model has "
+         "grown by this many images", aliases=("Mapper.ba_global_images_freq",)),
     _na("Mapper.ba_global_points_freq", int, "ba_global_points_freq", 250000, _BA_SCHEDULE),
     Flag("Mapper.ba_global_function_tolerance", float, "ba_global_function_tolerance",
          "bundle_adjustment.function_tolerance", "an adjustment stops when an iteration lowers the cost by less "

@@ -220,6 +220,9 @@ class BundleAdjustmentOptions:
     # A global adjustment whenever the registered images have grown by this ratio
     # (COLMAP's 1.1 gave the same poses where the errors look Gaussian, in more solves).
     global_images_ratio: float = 1.2
+    # ... or by this many images (COLMAP's ba_global_frames_freq): on a long sequence the
+    # ratio's steps grow long, and with them the drift that local adjustments leave.
+    global_images_freq: int = 500
     # Iterations of a global adjustment, and its gradient tolerance (as local).
     global_max_iterations: int = 50
     global_gradient_tolerance: float = 1.0
@@ -288,6 +291,7 @@ class BundleAdjustmentOptions:
         _require(self.local_max_iterations >= 1, self, "local_max_iterations", ">= 1")
         _require(self.local_max_track_length >= 2, self, "local_max_track_length", ">= 2")
         _require(self.global_images_ratio > 1, self, "global_images_ratio", "> 1")
+        _require(self.global_images_freq >= 1, self, "global_images_freq", ">= 1")
         _require(self.global_max_iterations >= 1, self, "global_max_iterations", ">= 1")
         for name in ("initial_trust_region_radius",
                      "least_squares_global_initial_trust_region_radius"):

@@ -242,8 +242,10 @@ class IncrementalMapper:
         with self.timer("triangulation"):
             triangulate_images(self.model, image_ids, self.graphs, options.guided_matching,
                                options.triangulation)
-        ratio = options.bundle_adjustment.global_images_ratio
-        if self.model.num_registered >= ratio * self.num_images_at_global_ba:
+        ba = options.bundle_adjustment
+        last = self.num_images_at_global_ba
+        if self.model.num_registered >= min(ba.global_images_ratio * last,
+                                            last + ba.global_images_freq):
             self._global_adjustment()
             return
         local = image_ids + [other for other in self.graphs.neighbours(
