@@ -92,8 +92,7 @@ class IncrementalMapper:
         while self._register_next():
             pass
         # Registration is over: what it kept for matching is memory the model's last
-        # adjustments need.
-        self.model.nearest.release()
+        # adjustments need (ModelAdjuster.global_adjustment gives up the searches).
         self._matched_keypoints.clear()
         return_freed_memory()
         if self.final_adjustment:
@@ -260,10 +259,7 @@ class IncrementalMapper:
         fixed threshold by noise alone). There a verified match within the threshold is a
         true observation; elsewhere the near-miss matches they would add cost the real
         sets accuracy, and the finished model's retriangulation completes the tracks
-        within the noise's limits. The descriptor searches kept go first: the adjustment
-        is the growing model's peak of memory, and a search is quick to run again."""
-        self.model.nearest.release()
-        return_freed_memory()
+        within the noise's limits."""
         self.adjuster.global_adjustment()
         if self.adjuster.errors_gaussian:
             triangulation = self.options.triangulation

@@ -109,9 +109,12 @@ class ModelAdjuster:
         own reprojection errors (bundle_adjust's `exact`) unless `exact` is False (a
         model retriangulated after it, whose last adjustment is exact). A round whose
         filter removed nothing ends the rounds: the next would solve the same problem
-        again from its optimum."""
+        again from its optimum. The descriptor searches kept go first: a global adjustment
+        is the model's peak of memory, and a search is quick to run again."""
         exact = final and exact
         model = self.model
+        model.nearest.release()
+        return_freed_memory()
         registered = model.registered
         ratio = self.filtering.final_max_error_ratio if final else 0.0
         for _ in range(rounds if final else 1):
@@ -205,11 +208,7 @@ def retriangulate(model: Model, matches: dict[Pair, np.ndarray], options: Mapper
         # The points the final filter would drop anyway (two-view tracks, narrow
         # angles) go first: the adjustment then solves the model's size, not twice it.
         filter_points(model, registered, options.filtering, final=True)
-    # What the triangulation searched and matched with is memory the adjustment, the
-    # model's peak, needs: the descriptor searches kept and the match graphs.
-    model.nearest.release()
-    del graphs
-    return_freed_memory()
+    del graphs  # memory the adjustment, the model's peak, needs
     # One round: the observations are fresh, and a second changed nothing measured.
     ModelAdjuster.of(model, options, timer).global_adjustment(final=True, rounds=1)
     return model.reconstruction.num_points3D()
