@@ -9,7 +9,10 @@ Sets (--sets, all by default):
 - drive200, drive800, drive2000, drive10000: synthetic drives (`driving_scene`: steps of 1 m, the
   camera looking forward, a 90 deg corner every 60 m or so taken over 6 frames, a stop of
   10 frames every 300), about 1000 keypoints an image within 40 m, 0.5 px noise, 20 % wrong
-  matches, verified geometries, each frame matched with the next 10; placeholder images;
+  matches, each frame matched with the next 10; placeholder images; the verified matches and
+  two-view geometries the generator's (the true matches and relative poses) or, with
+  --verification colmap, COLMAP's geometric verification of the raw matches
+  (`pycolmap.verify_matches`, intrinsics known), as a user's database holds them;
 - loop500: a synthetic drive round a block, its last frame one step behind its first; the
   last frames are matched with the first ones too;
 - stereo_drive200, stereo_drive800: the drives of drive200 and drive800 seen by a KITTI-like
@@ -37,6 +40,7 @@ matching never links (a point unseen for more than the matched frames and seen a
     python benchmarks/sequences.py [--sets kitti03_600-800,drive200,...] [--runs 3] [--seed 0]
         [--mappers ours,colmap_incremental,colmap_global] [--data DIR] [--work_dir DIR]
         [--markdown BENCHMARKS.md] [--section sequences] [--end_to_end]
+        [--verification generator|colmap]
 """
 
 from __future__ import annotations
@@ -97,26 +101,32 @@ def prepare_kitti(data: Path, work: Path) -> tuple[PreparedSet, str]:
     return prepared, note
 
 
-def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
+def prepare_drive(name: str, work: Path, seed: int,
+                  verification: str = "generator") -> tuple[PreparedSet, str]:
     """A synthetic drive's database with placeholder images (a stereo drive's with its rig
-    configuration applied), and a line saying what it holds."""
+    configuration applied; with `verification` "colmap", a single camera's verified by
+    COLMAP), and a line saying what it holds."""
     import numpy as np
 
     from colmap_ext.rigs import apply_rig_config, read_rig_config
+    from colmap_ext.synthetic.pycolmap_generator import verify_with_colmap
     from colmap_ext.synthetic import (driving_scene, points_for_keypoints, rig_scene,
                                       sequential_pairs, side_by_side_rig,
                                       true_tracks_reconstruction, write_ground_truth,
                                       write_placeholder_images, write_rig_config,
                                       write_synthetic_database)
 
-    folder = work / name
     options = dict(DRIVES[name])
     stereo = options.pop("stereo", False)
+    if stereo and verification != "generator":
+        raise SystemExit(f"{name}: --verification {verification} is for a single camera's drives")
+    folder = work / (name if verification == "generator" else f"{name}_{verification}_verified")
     drive = driving_scene(seed=seed, **options)
     cams_from_rig = side_by_side_rig(len(STEREO_PREFIXES), STEREO_BASELINE)
     scene = rig_scene(drive, cams_from_rig, STEREO_PREFIXES) if stereo else drive
     note = f"{name}: {drive.num_images} frames" + (", a loop" if options.get("loop") else "") + \
-        (f" of a stereo rig ({STEREO_BASELINE} m)" if stereo else "")
+        (f" of a stereo rig ({STEREO_BASELINE} m)" if stereo else "") + \
+        (", COLMAP's verification" if verification == "colmap" else "")
     written = (folder / "database.db").exists() and (stereo or (folder / TRUE_TRACKS).is_dir())
     if not written:
         start = time.perf_counter()
@@ -128,6 +138,10 @@ def prepare_drive(name: str, work: Path, seed: int) -> tuple[PreparedSet, str]:
         truth = write_synthetic_database(folder / "database.db", scene, points, noise_px=0.5,
                                          outlier_ratio=0.2, max_distance=MAX_DISTANCE, seed=seed,
                                          two_view_geometries=True, pairs=pairs)
+        if verification == "colmap":
+            names = scene.image_names
+            verify_with_colmap(folder / "database.db",
+                               [(names[i], names[j]) for i, j in sorted(pairs)])
         if stereo:
             write_rig_config(folder / "rig.json", scene.camera, cams_from_rig, STEREO_PREFIXES)
             apply_rig_config(folder / "database.db", read_rig_config(folder / "rig.json"))
@@ -279,6 +293,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--end_to_end", action="store_true",
                         help=f"{KITTI} from its images: `colmap-ext reconstruct` against COLMAP's "
                              "extraction, sequential matching and mapper")
+    parser.add_argument("--verification", default="generator", choices=("generator", "colmap"),
+                        help="the synthetic drives' verified matches: the generator's true ones, "
+                             "or COLMAP's verification of the raw matches")
     args = parser.parse_args(argv)
     names = [n for n in args.sets.split(",") if n]
     mappers = [m for m in args.mappers.split(",") if m]
@@ -298,7 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         for name in names:
             print(f"=== {name}: preparing the database ...", file=sys.stderr, flush=True)
             prepared, note = prepare_kitti(Path(args.data), work) if name == KITTI \
-                else prepare_drive(name, work, args.seed)
+                else prepare_drive(name, work, args.seed, args.verification)
             notes.append(note)
             all_results[name] = (prepared, measure(prepared, mappers, args.runs, args.seed, work,
                                                    args.end_to_end))

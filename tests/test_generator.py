@@ -283,3 +283,28 @@ def test_global_adjustments_come_at_least_every_global_images_freq_images(tmp_pa
     assert model.num_reg_images() == 12
     gaps = np.diff(sizes)
     assert (gaps.max() == 1) == (freq == 1), sizes
+
+
+@pytest.mark.parametrize("window_num_images", [0, 3])
+def test_the_last_registered_images_are_adjusted_together_every_window_images_freq_images(
+        tmp_path, monkeypatch, window_num_images):
+    """BundleAdjustmentOptions.window_num_images: between global adjustments (here the
+    initial pair's alone: ratio 10), the last 3 registered images are adjusted together
+    whenever the model has grown by 2 images, once it holds twice the window; 0: never."""
+    from colmap_ext.mapper.options import BundleAdjustmentOptions
+    from colmap_ext.mapper.refinement import ModelAdjuster
+    windows: list[int] = []
+    local_adjustment = ModelAdjuster.local_adjustment
+
+    def recording(self, image_ids):
+        if list(image_ids) == self.model.registration_order[-3:]:
+            windows.append(self.model.num_registered)
+        local_adjustment(self, image_ids)
+
+    monkeypatch.setattr(ModelAdjuster, "local_adjustment", recording)
+    generate(tmp_path, "PINHOLE", 0.5, 1.0, 0)
+    options = MapperOptions(seed=0, bundle_adjustment=BundleAdjustmentOptions(
+        global_images_ratio=10.0, window_num_images=window_num_images, window_images_freq=2))
+    model = reconstruct(read_database(tmp_path / "database.db"), options, progress=False)[0]
+    assert model.num_reg_images() == 12
+    assert windows == ([6, 8, 10, 12] if window_num_images else [])

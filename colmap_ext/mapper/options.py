@@ -223,6 +223,14 @@ class BundleAdjustmentOptions:
     # ... or by this many images (COLMAP's ba_global_frames_freq): on a long sequence the
     # ratio's steps grow long, and with them the drift that local adjustments leave.
     global_images_freq: int = 500
+    # Between global adjustments, whenever the model has grown by window_images_freq
+    # images, its last window_num_images registered images are adjusted together, by the
+    # local rule (the images beyond them constant), in a model of at least twice as many:
+    # a sequence's turns leave its newest images off by tenths of a degree, which six
+    # images' local adjustments do not spread and the next global adjustment would unwind
+    # over the whole model (BENCHMARKS.md, "Sequences"). 0: never.
+    window_num_images: int = 100
+    window_images_freq: int = 50
     # Iterations of a global adjustment, and its gradient tolerance (as local).
     global_max_iterations: int = 50
     global_gradient_tolerance: float = 1.0
@@ -293,6 +301,8 @@ class BundleAdjustmentOptions:
         _require(self.global_images_ratio > 1, self, "global_images_ratio", "> 1")
         _require(self.global_images_freq >= 1, self, "global_images_freq", ">= 1")
         _require(self.global_max_iterations >= 1, self, "global_max_iterations", ">= 1")
+        _require(self.window_num_images >= 0, self, "window_num_images", ">= 0")
+        _require(self.window_images_freq >= 1, self, "window_images_freq", ">= 1")
         for name in ("initial_trust_region_radius",
                      "least_squares_global_initial_trust_region_radius"):
             _require(getattr(self, name) > 0, self, name, "> 0")

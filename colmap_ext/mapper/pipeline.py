@@ -64,6 +64,7 @@ class IncrementalMapper:
             sorted(model.image_ids, key=lambda i: model.db.images[i].name))}
         self.trials: dict[int, int] = defaultdict(int)
         self.num_images_at_global_ba = 0
+        self.num_images_at_window_ba = 0
         # Per unregistered image: model points it sees through verified matches, kept
         # between rounds and counted again only when a neighbour's observations change.
         self._visible: dict[int, int] = {}
@@ -251,6 +252,18 @@ class IncrementalMapper:
             self.model, image_id, options.bundle_adjustment.local_num_images)
             if other not in image_ids]
         self.adjuster.local_adjustment(local)
+        if self._window_adjustment_due():
+            self.adjuster.local_adjustment(
+                self.model.registration_order[-ba.window_num_images:])
+            self.num_images_at_window_ba = self.model.num_registered
+
+    def _window_adjustment_due(self) -> bool:
+        """Whether the last registered images are due an adjustment together
+        (BundleAdjustmentOptions.window_num_images)."""
+        ba, num_registered = self.options.bundle_adjustment, self.model.num_registered
+        last = max(self.num_images_at_global_ba, self.num_images_at_window_ba)
+        return bool(ba.window_num_images) and num_registered >= 2 * ba.window_num_images \
+            and num_registered >= last + ba.window_images_freq
 
     def _global_adjustment(self) -> None:
         """Adjust the whole model; where its errors look Gaussian, complete and merge its

@@ -4,6 +4,7 @@ model: a second generator, independent of ours, that COLMAP's mapper tests use."
 from __future__ import annotations
 
 import itertools
+from collections.abc import Iterable
 from pathlib import Path
 
 import numpy as np
@@ -64,22 +65,24 @@ def write_pycolmap_dataset(database_path: str | Path, camera_model: str | None, 
     return truth
 
 
-def verify_with_colmap(database_path: Path) -> None:
-    """Replace the generator's two-view geometries, which hold its true matches alone, by
-    COLMAP's geometric verification of the raw matches (every pair, focal lengths marked
-    known: the essential matrix), as a calibrated user's database is made: the wrong matches
-    that agree with a pair's geometry get through, as on real images."""
+def verify_with_colmap(database_path: Path,
+                       pairs: Iterable[tuple[str, str]] | None = None) -> None:
+    """Replace the generator's two-view geometries, which hold its true matches alone (and,
+    ours, the true relative poses), by COLMAP's geometric verification of the raw matches
+    of `pairs` of image names (None: every pair), focal lengths marked known: the essential
+    matrix, as a calibrated user's database is made: the wrong matches that agree with a
+    pair's geometry get through, as on real images."""
     fix_intrinsics_in_database(database_path)
     with pycolmap.Database.open(database_path) as database:
         database.clear_two_view_geometries()
         names = sorted(image.name for image in database.read_all_images())
-    pairs = database_path.with_name(database_path.stem + "_pairs.txt")
-    pairs.write_text("".join(f"{first} {second}\n"
-                             for first, second in itertools.combinations(names, 2)))
+    pairs_path = database_path.with_name(database_path.stem + "_pairs.txt")
+    pairs_path.write_text("".join(f"{first} {second}\n" for first, second in
+                                  (itertools.combinations(names, 2) if pairs is None else pairs)))
     try:
-        pycolmap.verify_matches(database_path, pairs)
+        pycolmap.verify_matches(database_path, pairs_path)
     finally:
-        pairs.unlink()
+        pairs_path.unlink()
 
 
 def wrong_observations(model: pycolmap.Reconstruction, truth: pycolmap.Reconstruction) -> int:
