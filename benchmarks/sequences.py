@@ -109,12 +109,12 @@ def prepare_drive(name: str, work: Path, seed: int,
     import numpy as np
 
     from colmap_ext.rigs import apply_rig_config, read_rig_config
-    from colmap_ext.synthetic.pycolmap_generator import verify_with_colmap
     from colmap_ext.synthetic import (driving_scene, points_for_keypoints, rig_scene,
                                       sequential_pairs, side_by_side_rig,
                                       true_tracks_reconstruction, write_ground_truth,
                                       write_placeholder_images, write_rig_config,
                                       write_synthetic_database)
+    from colmap_ext.synthetic.pycolmap_generator import verify_with_colmap
 
     options = dict(DRIVES[name])
     stereo = options.pop("stereo", False)

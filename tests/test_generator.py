@@ -130,6 +130,23 @@ def test_wrong_matches_through_colmaps_verification_stay_out_of_the_model(tmp_pa
     assert rotation_errors(model, truth).max() < 0.3
 
 
+def test_colmaps_verification_of_the_pairs_given_alone(tmp_path):
+    """verify_with_colmap with pairs (a sequence's, as benchmarks/sequences.py's
+    --verification colmap passes them): two-view geometries for those pairs alone, every
+    one of the generator's replaced."""
+    generate(tmp_path, "PINHOLE", 0.5, 1.0, seed=0)
+    with pycolmap.Database.open(tmp_path / "database.db") as database:
+        names = sorted(image.name for image in database.read_all_images())
+    pairs = [(names[i], names[i + 1]) for i in range(len(names) - 1)]
+    verify_with_colmap(tmp_path / "database.db", pairs)
+    with pycolmap.Database.open(tmp_path / "database.db") as database:
+        name_of = {image.image_id: image.name for image in database.read_all_images()}
+        verified = {tuple(sorted(name_of[i] for i in pycolmap.pair_id_to_image_pair(pair_id)))
+                    for pair_id, geometry in zip(*database.read_two_view_geometries())
+                    if len(geometry.inlier_matches)}
+    assert verified == set(pairs)
+
+
 @pytest.mark.parametrize("seed", [0, 4])
 def test_poses_are_the_least_squares_optimum_of_the_true_tracks(tmp_path, seed):
     """At 0.5 px, every match true: the model is the maximum-likelihood answer of a perfect
