@@ -240,6 +240,37 @@ def test_absolute_pose_agrees_with_pycolmap(method):
     assert np.mean(ours.inlier_mask == theirs["inlier_mask"]) > 0.98
 
 
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_absolute_pose_is_the_least_squares_fit_of_its_own_inliers(seed):
+    """The final refinement ends on a fixed point: the inliers are exactly the
+    correspondences within the threshold of the pose, and the pose minimises their squared
+    errors (a Gauss-Newton step from it, by numerical derivatives, moves nothing)."""
+    scene = one_view(seed=seed, outlier_ratio=0.3)
+    result = solvers.absolute_pose(scene.x, scene.X, max_error=MAX_ERROR, seed=3)
+    f = unit_rays(scene.x)
+    R, t = result.cam_from_world.rotation.matrix(), result.cam_from_world.translation
+
+    def tangent_errors(delta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Error vectors x / (f.x) - f (norm: the tangent of the angle) and depths f.x at
+        the pose moved by delta (rotation vector, translation step)."""
+        x = scene.X @ (pycolmap.Rotation3d(delta[:3]).matrix() @ R).T + t + delta[3:]
+        depth = np.sum(f * x, axis=1)
+        return x / depth[:, None] - f, depth
+
+    errors, depth = tangent_errors(np.zeros(6))
+    within = (np.linalg.norm(errors, axis=1) < MAX_ERROR) & (depth > 0)
+    np.testing.assert_array_equal(result.inlier_mask, within)
+
+    def residuals(delta: np.ndarray) -> np.ndarray:
+        return tangent_errors(delta)[0][result.inlier_mask].ravel()
+
+    h = 1e-6
+    J = np.column_stack([(residuals(h * e) - residuals(-h * e)) / (2 * h) for e in np.eye(6)])
+    step = np.linalg.lstsq(J, -residuals(np.zeros(6)), rcond=None)[0]
+    assert np.rad2deg(np.linalg.norm(step[:3])) < 1e-6
+    assert np.linalg.norm(step[3:]) < 1e-7 * np.linalg.norm(scene.X, axis=1).mean()
+
+
 @pytest.mark.parametrize("method, min_found", [("nister", 0.9), ("stewenius", 1.0)])
 def test_five_point_finds_true_essential_matrix(method, min_found):
     """Every solution is an essential matrix fitting the five pairs, and the true one is

@@ -210,9 +210,10 @@ class RigReprojectionErrors {
   }
 
   // Levenberg-Marquardt on the inliers' reprojection errors (6 degrees of freedom).
-  bool refine(const std::vector<int>& inliers, Model* rig_from_world) const {
+  RefinementStatus refine(const std::vector<int>& inliers, Model* rig_from_world,
+                          int max_iterations) const {
     ReprojectionRefinement problem(observations_, inliers, rig_from_world);
-    return levenberg_marquardt<6>(problem);
+    return levenberg_marquardt<6>(problem, max_iterations);
   }
 
  protected:

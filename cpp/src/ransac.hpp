@@ -8,7 +8,9 @@
 //   // The squared errors of data begin..end-1 into errors[0..]; +inf or NaN: never fits.
 //   // Scored a block at a time, so that an estimator's loop over the block can vectorise.
 //   void squared_errors(const Model& model, size_t begin, size_t end, double* errors) const;
-//   bool refine(const std::vector<int>& inliers, Model* model) const;  // least squares on inliers
+//   // Least squares on the inliers, at most max_iterations steps (refinement.hpp).
+//   RefinementStatus refine(const std::vector<int>& inliers, Model* model,
+//                           int max_iterations) const;
 // and may provide, to draw samples other than uniformly:
 //   void draw_sample(std::mt19937_64& rng, std::vector<int>* sample) const;
 #pragma once
@@ -22,6 +24,8 @@
 #include <type_traits>
 #include <utility>
 #include <vector>
+
+#include "refinement.hpp"
 
 namespace colmap_ext {
 
@@ -72,6 +76,14 @@ inline int required_iterations(int num_inliers, int num_data, int sample_size, d
 // Data scored at once by squared_errors: small, so that scoring a model that cannot win
 // stops soon after its score passes the bound.
 constexpr size_t kScoreBlock = 64;
+
+// The local optimisation of a new best model: least squares on its inliers, to
+// convergence. A single step instead finds the same inliers on benchmarks/solvers.py's
+// problems, but moves the mapper's models (docs/experiments/speed.md, "P3P").
+constexpr int kLocalOptimizationSteps = 20;
+// The final refinement's steps at most: ten rounds of refinement to convergence (20
+// steps), each followed by finding the inliers again.
+constexpr int kFinalRefinementSteps = 200;
 
 // MSAC score of one model (lower is better). Scoring stops early once the score passes
 // `bound`: such a model cannot become the best one.
@@ -145,7 +157,8 @@ RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
       // Local optimisation: a least-squares fit on the inliers often finds more of them.
       Model refined = result.model;
       if (static_cast<int>(best_inliers.size()) > kSampleSize &&
-          estimator.refine(best_inliers, &refined)) {
+          estimator.refine(best_inliers, &refined, kLocalOptimizationSteps) !=
+              RefinementStatus::kFailed) {
         const double refined_score = score_model(estimator, refined, max_sq_error, best_score);
         if (refined_score < best_score) {
           best_score = refined_score;
@@ -161,19 +174,24 @@ RansacResult<typename Estimator::Model> ransac(const Estimator& estimator,
   result.num_iterations = iteration;
   if (static_cast<int>(best_inliers.size()) < kSampleSize) return result;
 
-  // Final least-squares refinement on the inliers, then on the inliers of the refined
-  // model, until they stay the same. Kept even where it raises the MSAC score a little
-  // (inliers near the threshold cross it): a least-squares fit of the inliers is the
-  // more accurate estimate, and the descent cannot leave the RANSAC model's basin.
-  for (int round = 0; round < 10; ++round) {
+  // Final least-squares refinement on the inliers, a step at a time, the inliers found
+  // again after each step, until a step converges on inliers that its result keeps: the
+  // least-squares fit of its own inliers, as refining to convergence between findings
+  // reaches, without converging on each set of inliers on the way. Kept even where it
+  // raises the MSAC score a little (inliers near the threshold cross it): a least-squares
+  // fit of the inliers is the more accurate estimate, and the descent cannot leave the
+  // RANSAC model's basin.
+  for (int step = 0; step < kFinalRefinementSteps; ++step) {
     Model refined = result.model;
-    if (!estimator.refine(best_inliers, &refined)) break;
+    const RefinementStatus status = estimator.refine(best_inliers, &refined, 1);
+    if (status == RefinementStatus::kFailed) break;
     result.model = refined;
     std::vector<int> inliers;
     find_inliers(estimator, refined, max_sq_error, &inliers);
     const bool unchanged = inliers == best_inliers;
     best_inliers.swap(inliers);
-    if (unchanged || static_cast<int>(best_inliers.size()) < kSampleSize) break;
+    if (static_cast<int>(best_inliers.size()) < kSampleSize) break;
+    if (unchanged && status == RefinementStatus::kConverged) break;
   }
   result.success = true;
   result.num_inliers = static_cast<int>(best_inliers.size());

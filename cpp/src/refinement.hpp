@@ -22,37 +22,44 @@ namespace colmap_ext {
 // change in the inliers, and a step more would only confirm it.
 constexpr double kRelativeDecrease = 1e-8;
 
+// How a refinement ended: its cost was not finite at the start (kFailed); no step lowers
+// it by kRelativeDecrease any more (kConverged); or max_iterations steps were taken, each
+// lowering it (kIterationLimit).
+enum class RefinementStatus { kFailed, kConverged, kIterationLimit };
+
+// Each iteration linearizes at the model and takes the first damped step that lowers the
+// cost, raising the damping tenfold after each one that does not.
 template <int D, typename Problem>
-bool levenberg_marquardt(Problem& problem, int max_iterations = 20) {
+RefinementStatus levenberg_marquardt(Problem& problem, int max_iterations = 20) {
   using Vec = Eigen::Matrix<double, D, 1>;
   using Mat = Eigen::Matrix<double, D, D>;
   Mat H;
   Vec g;
-  double cost = problem.linearize(&H, &g);
-  if (!std::isfinite(cost)) return false;
   double lambda = 1e-4;
   for (int iteration = 0; iteration < max_iterations; ++iteration) {
+    const double cost = problem.linearize(&H, &g);
+    if (!std::isfinite(cost)) return RefinementStatus::kFailed;  // only at the start: each
+                                                                 // step lowers a finite cost
     bool improved = false;
     for (int attempt = 0; attempt < 10 && !improved; ++attempt) {
       Mat damped = H;
       damped.diagonal() += lambda * H.diagonal().cwiseMax(1e-12);
       const Vec step = damped.ldlt().solve(-g);
-      if (!step.allFinite()) return true;
+      if (!step.allFinite()) return RefinementStatus::kConverged;
       const double new_cost = problem.cost(step);
       if (std::isfinite(new_cost) && new_cost < cost) {
         problem.commit(step);
-        const bool converged = cost - new_cost < kRelativeDecrease * cost || step.norm() < 1e-12;
+        if (cost - new_cost < kRelativeDecrease * cost || step.norm() < 1e-12)
+          return RefinementStatus::kConverged;
         lambda = std::max(lambda * 0.1, 1e-12);
         improved = true;
-        if (converged) return true;
-        cost = problem.linearize(&H, &g);
       } else {
         lambda *= 10;
       }
     }
-    if (!improved) break;
+    if (!improved) return RefinementStatus::kConverged;
   }
-  return true;
+  return RefinementStatus::kIterationLimit;
 }
 
 // The rotation exp(w) R: a local update of a rotation by a rotation vector w.

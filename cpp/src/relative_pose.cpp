@@ -258,15 +258,16 @@ class RelativePoseEstimator {
   }
 
   // Levenberg-Marquardt on the inliers' Sampson errors (5 degrees of freedom).
-  bool refine(const std::vector<int>& inliers, Model* model) const {
+  RefinementStatus refine(const std::vector<int>& inliers, Model* model,
+                          int max_iterations) const {
     if (!model->has_pose) {
       model->pose = decompose_essential(model->E, rays1_, rays2_, inliers);
       model->has_pose = true;
     }
     SampsonRefinement problem(rays1_, rays2_, weights_, inliers, &model->pose);
-    if (!levenberg_marquardt<5>(problem)) return false;
-    model->E = essential_from_pose(model->pose);
-    return true;
+    const RefinementStatus status = levenberg_marquardt<5>(problem, max_iterations);
+    if (status != RefinementStatus::kFailed) model->E = essential_from_pose(model->pose);
+    return status;
   }
 
  private:
@@ -460,12 +461,13 @@ class GeneralizedRelativePoseEstimator {
                                            weights_[i]);
   }
 
-  bool refine(const std::vector<int>& inliers, Model* model) const {
+  RefinementStatus refine(const std::vector<int>& inliers, Model* model,
+                          int max_iterations) const {
     GeneralizedSampsonRefinement problem(rays1_, rays2_, weights_, pair_, rig_, inliers,
                                          &model->pose);
-    if (!levenberg_marquardt<6>(problem)) return false;
-    model->essentials = pair_essentials(rig_, model->pose);
-    return true;
+    const RefinementStatus status = levenberg_marquardt<6>(problem, max_iterations);
+    if (status != RefinementStatus::kFailed) model->essentials = pair_essentials(rig_, model->pose);
+    return status;
   }
 
  private:
