@@ -24,13 +24,48 @@ using opengv::absolute_pose::NoncentralAbsoluteAdapter;
 // rig camera's ray f is that of x_rig - o along R_c^T f, o the camera's centre in the rig:
 // every observation is scored in the rig's frame, against rig_from_world alone.
 //
-// The observations in the rig's frame, a column per coordinate (each contiguous, so that
-// scoring vectorises): world point, ray, an orthonormal basis of the tangent plane (the
-// refinement's residual), centre of the observing camera, and the weight 1 / threshold.
+// The observations in the rig's frame are held a column per coordinate (each contiguous,
+// so that scoring vectorises): world point, ray, an orthonormal basis of the tangent plane
+// (the refinement's residual), centre of the observing camera, and the weight 1 / threshold.
+enum Column { kX, kRay = 3, kTangent1 = 6, kTangent2 = 9, kCentre = 12, kWeight = 15, kColumns };
+
+// Depths along the ray at or below this never fit (the point is beside or behind it).
+constexpr double kMinDepth = 1e-9;
+
+// The squared errors over their thresholds of observations begin..end-1, into errors[0..]
+// (+inf beside or behind the ray), from the columns of `rows` observations in `data`
+// (column-major), given rig_from_world's R (row-major) and t in pose[0..8], pose[9..11].
+// kOffCentre: some camera's centre is not the rig's (a single camera's always is). Compiled for
+// AVX2 as well, chosen where the processor has it: four points an instruction instead of
+// SSE2's two, and no FMA, so that the errors are the same to the bit on every processor.
+template <bool kOffCentre>
+__attribute__((target_clones("avx2", "default")))
+void tangent_squared_errors(const double* data, size_t rows, const double* pose, size_t begin,
+                            size_t end, double* __restrict errors) {
+  const double *X = data + kX * rows, *Y = X + rows, *Z = Y + rows, *fx = data + kRay * rows,
+               *fy = fx + rows, *fz = fy + rows, *ox = data + kCentre * rows, *oy = ox + rows,
+               *oz = oy + rows, *weight = data + kWeight * rows;
+  const double r00 = pose[0], r01 = pose[1], r02 = pose[2], r10 = pose[3], r11 = pose[4],
+               r12 = pose[5], r20 = pose[6], r21 = pose[7], r22 = pose[8], t0 = pose[9],
+               t1 = pose[10], t2 = pose[11];
+  for (size_t i = begin; i < end; ++i) {
+    double x = r00 * X[i] + r01 * Y[i] + r02 * Z[i] + t0;
+    double y = r10 * X[i] + r11 * Y[i] + r12 * Z[i] + t1;
+    double z = r20 * X[i] + r21 * Y[i] + r22 * Z[i] + t2;
+    if constexpr (kOffCentre) {
+      x -= ox[i];
+      y -= oy[i];
+      z -= oz[i];
+    }
+    const double depth = fx[i] * x + fy[i] * y + fz[i] * z;
+    const double cx = fy[i] * z - fz[i] * y, cy = fz[i] * x - fx[i] * z, cz = fx[i] * y - fy[i] * x;
+    const double error = weight[i] * weight[i] * (cx * cx + cy * cy + cz * cz) / (depth * depth);
+    errors[i - begin] = depth > kMinDepth ? error : std::numeric_limits<double>::infinity();
+  }
+}
+
 class RigFrameObservations {
  public:
-  enum Column { kX, kRay = 3, kTangent1 = 6, kTangent2 = 9, kCentre = 12, kWeight = 15, kColumns };
-
   RigFrameObservations(const bearingVectors_t& rays, const std::vector<int>& camera_index,
                        const points_t& points, const Rig& rig,
                        const std::vector<double>& max_errors)
@@ -68,41 +103,17 @@ class RigFrameObservations {
   Eigen::Vector3d centre(int i) const { return data_.row(i).segment<3>(kCentre); }
   double weight(int i) const { return data_(i, kWeight); }
 
-  // Depths along the ray at or below this never fit (the point is beside or behind it).
-  static constexpr double kMinDepth = 1e-9;
-
  private:
-  // kOffCentre: some camera's centre is not the rig's (a single camera's always is).
   template <bool kOffCentre>
   void squared_errors(const Pose& rig_from_world, size_t begin, size_t end,
-                      double* __restrict errors) const {
+                      double* errors) const {
     const Eigen::Matrix3d& R = rig_from_world.R;
     const Eigen::Vector3d& t = rig_from_world.t;
-    const double r00 = R(0, 0), r01 = R(0, 1), r02 = R(0, 2), r10 = R(1, 0), r11 = R(1, 1),
-                 r12 = R(1, 2), r20 = R(2, 0), r21 = R(2, 1), r22 = R(2, 2);
-    const double t0 = t.x(), t1 = t.y(), t2 = t.z();
-    const double *X = col(kX), *Y = col(kX + 1), *Z = col(kX + 2), *fx = col(kRay),
-                 *fy = col(kRay + 1), *fz = col(kRay + 2), *ox = col(kCentre),
-                 *oy = col(kCentre + 1), *oz = col(kCentre + 2), *weight = col(kWeight);
-    for (size_t i = begin; i < end; ++i) {
-      double x = r00 * X[i] + r01 * Y[i] + r02 * Z[i] + t0;
-      double y = r10 * X[i] + r11 * Y[i] + r12 * Z[i] + t1;
-      double z = r20 * X[i] + r21 * Y[i] + r22 * Z[i] + t2;
-      if constexpr (kOffCentre) {
-        x -= ox[i];
-        y -= oy[i];
-        z -= oz[i];
-      }
-      const double depth = fx[i] * x + fy[i] * y + fz[i] * z;
-      const double cx = fy[i] * z - fz[i] * y, cy = fz[i] * x - fx[i] * z,
-                   cz = fx[i] * y - fy[i] * x;
-      const double error =
-          weight[i] * weight[i] * (cx * cx + cy * cy + cz * cz) / (depth * depth);
-      errors[i - begin] = depth > kMinDepth ? error : std::numeric_limits<double>::infinity();
-    }
+    const double pose[12] = {R(0, 0), R(0, 1), R(0, 2), R(1, 0), R(1, 1), R(1, 2),
+                             R(2, 0), R(2, 1), R(2, 2), t.x(),   t.y(),   t.z()};
+    tangent_squared_errors<kOffCentre>(data_.data(), static_cast<size_t>(data_.rows()), pose,
+                                       begin, end, errors);
   }
-
-  const double* col(int c) const { return data_.col(c).data(); }
 
   Eigen::Matrix<double, Eigen::Dynamic, kColumns> data_;  // column-major
   bool centred_;  // every camera's centre is the rig's
@@ -166,7 +177,7 @@ class ReprojectionRefinement {
   Eigen::Vector2d residual(int i, const Eigen::Vector3d& x_rig) const {
     const Eigen::Vector3d x = x_rig - observations_.centre(i);
     const double depth = observations_.ray(i).dot(x);
-    if (depth <= RigFrameObservations::kMinDepth)
+    if (depth <= kMinDepth)
       return Eigen::Vector2d::Constant(std::numeric_limits<double>::infinity());
     return observations_.weight(i) / depth * (observations_.tangents(i) * x);
   }
